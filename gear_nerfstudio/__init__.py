@@ -1,0 +1,1 @@
+"""Gear-NeRF for nerfstudio (Liu et al., CVPR 2024)."""

@@ -1,0 +1,1 @@
+"""Method presets registered with nerfstudio (installed as gear_nerfstudio.method_configs)."""
