@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 import time
@@ -71,9 +72,11 @@ class DemoCommand:
 
 
 def _run(command: List[str]) -> None:
-    executable = Path(sys.executable).parent / command[0]
+    """Run a command of this environment, with its bin folder (ns-*, ffmpeg) first on PATH."""
+    bin_dir = Path(sys.executable).parent
     print(f"[demo] $ {' '.join(command)}", flush=True)
-    subprocess.run([str(executable), *command[1:]], check=True)
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
+    subprocess.run([str(bin_dir / command[0]), *command[1:]], check=True, env=env)
 
 
 def entrypoint() -> None:

@@ -1,0 +1,382 @@
+"""Gear-NeRF model for nerfstudio (Liu et al., CVPR 2024).
+
+Per batch of rays: base sampler (uniform, n = 64 in the paper, or a proposal network) -> gear level p of
+each base sample -> split sampler (Sec 4.4) -> GearField (Eq 3-7) -> renderers for colour (Eq 1),
+depth, accumulation, SAM features (Eq 8), gear level and samples per ray. Losses: Eq 2, Eq 9 and the
+K-Planes regularisers. The gear function g is a separate parameter group ("gear_field") that the
+radiance optimiser never sees; it is trained by the gear-update step (Sec 4.3, Eq 10-11).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Optional, Tuple, Type
+
+import numpy as np
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor
+from torch.nn import Parameter
+
+from nerfstudio.cameras.rays import RayBundle, RaySamples
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.field_components.spatial_distortions import SceneContraction
+from nerfstudio.model_components.losses import MSELoss, distortion_loss, interlevel_loss
+from nerfstudio.model_components.ray_samplers import (
+    ProposalNetworkSampler,
+    UniformLinDispPiecewiseSampler,
+    UniformSampler,
+)
+from nerfstudio.model_components.renderers import AccumulationRenderer, DepthRenderer, RGBRenderer
+from nerfstudio.model_components.scene_colliders import AABBBoxCollider, NearFarCollider
+from nerfstudio.models.base_model import Model, ModelConfig
+from nerfstudio.utils import colormaps
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from gear_nerfstudio.gear_field import GearField, ProposalDensityField
+from gear_nerfstudio.split_sampler import SplitSampler
+
+
+@dataclass
+class GearNeRFModelConfig(ModelConfig):
+    """Gear-NeRF model config. Defaults are the paper's settings (Sec 5.1) where it states them."""
+
+    _target: Type = field(default_factory=lambda: GearNeRFModel)
+
+    near_plane: Optional[float] = None
+    """Near plane in scene units; None takes ``metadata["near"]`` from the dataparser."""
+    far_plane: Optional[float] = None
+    """Far plane in scene units; None takes ``metadata["far"]``. Without either: clip rays to the scene box."""
+    unbounded: Optional[bool] = None
+    """Contract unbounded space (SceneContraction, order=inf); None takes ``metadata["unbounded"]``."""
+    num_frames: Optional[int] = None
+    """Frames T of the window; None takes ``metadata["num_frames"]`` (1, a static scene, when absent)."""
+    num_gears: int = 4
+    """N_gear."""
+    feature_dim: int = 32
+    """M, the dimension of the feature f (Eq 3)."""
+    resolutions: Tuple[int, ...] = (64, 128, 256, 512)
+    """Spatial resolutions of the planes (features concatenated across resolutions before B_j)."""
+    gear_feature_dim: int = 8
+    """M', channels of the gear function's planes h', k' (Eq 4)."""
+    gear_resolution: int = 64
+    """Spatial resolution of h', k'."""
+    gear_time_resolution: Optional[int] = None
+    """Temporal resolution of k'; None uses num_frames."""
+    geo_feat_dim: int = 15
+    """Features from the density MLP to the colour MLP."""
+    hidden_dim: int = 64
+    """Width of the density and SAM MLPs."""
+    hidden_dim_color: int = 64
+    """Width of the colour MLP."""
+    sam_dim: int = 256
+    """Dimension of the SAM encoder features."""
+    sam_head_dim: Optional[int] = 32
+    """SAM embedding dimension per sample before the learned lift to sam_dim; None predicts sam_dim."""
+    num_samples: int = 64
+    """n, base samples per ray (Sec 4.4)."""
+    split_base: int = 2
+    """A base sample at gear p is split into split_base^(p-1) samples (Sec 4.4)."""
+    base_sampler: Literal["uniform", "proposal"] = "uniform"
+    """Base samples: stratified uniform between near and far (paper) or a proposal network (K-Planes)."""
+    num_proposal_samples: Tuple[int, ...] = (256, 128)
+    """Samples per ray of each proposal iteration."""
+    proposal_resolutions: Tuple[int, ...] = (128, 256)
+    """Spatial resolution of each proposal network's planes."""
+    proposal_feature_dim: int = 8
+    """Plane channels of the proposal networks."""
+    proposal_time_resolution: Optional[int] = None
+    """Temporal resolution of the proposal networks; None uses half the frames (K-Planes)."""
+    proposal_warmup: int = 5000
+    """Scales the proposal update interval from 1 to proposal_update_every over this many steps."""
+    proposal_update_every: int = 5
+    """Update the proposal networks every this many steps after the warmup."""
+    use_proposal_weight_anneal: bool = True
+    """Anneal the proposal weights before PDF sampling (Mip-NeRF 360, Eq 18)."""
+    proposal_weights_anneal_slope: float = 10.0
+    """Slope of the annealing function."""
+    proposal_weights_anneal_max_num_iters: int = 1000
+    """Iterations over which the annealing reaches 1."""
+    background_color: Literal["random", "last_sample", "black", "white"] = "last_sample"
+    """Background colour. The K-Planes plugin defaults to white for Blender scenes; real captures
+    without alpha use the colour of the last sample, as nerfacto."""
+    sam_loss_mult: float = 1.0
+    """Weight of L_SAM (Eq 9), applied when the batch has "sam_features"."""
+    plane_tv_mult: float = 2e-4
+    """Total variation of the radiance planes (K-Planes DyNeRF)."""
+    l1_time_planes_mult: float = 1e-4
+    """L1 deviation of the space-time planes from 1 (K-Planes DyNeRF)."""
+    time_smoothness_mult: float = 1e-3
+    """Second difference along t of the space-time planes (K-Planes DyNeRF)."""
+    plane_tv_proposal_mult: float = 2e-4
+    """Plane TV of the proposal networks (K-Planes DyNeRF)."""
+    l1_time_planes_proposal_mult: float = 1e-4
+    """L1 time planes of the proposal networks (K-Planes DyNeRF)."""
+    time_smoothness_proposal_mult: float = 1e-5
+    """Time smoothness of the proposal networks (K-Planes DyNeRF)."""
+    interlevel_loss_mult: float = 1.0
+    """Proposal (interlevel) loss, proposal base sampler only."""
+    distortion_loss_mult: float = 1e-3
+    """Distortion loss on the base samples, proposal base sampler only."""
+
+
+def lpips_weights_path() -> Path:
+    """Where torchvision keeps the AlexNet weights that torchmetrics' LPIPS needs."""
+    from torchvision.models import AlexNet_Weights
+
+    return Path(torch.hub.get_dir()) / "checkpoints" / Path(AlexNet_Weights.DEFAULT.url).name
+
+
+class GearNeRFModel(Model):
+    """Gear-NeRF: serial 4D feature volumes, gears, motion-aware sampling and a 4D SAM embedding."""
+
+    config: GearNeRFModelConfig
+
+    def populate_modules(self) -> None:
+        """Field, samplers, collider, renderers, losses and metrics."""
+        config = self.config
+        metadata: Dict[str, Any] = self.kwargs.get("metadata") or {}
+        self.num_frames = int(config.num_frames or metadata.get("num_frames", 1))
+        unbounded = bool(metadata.get("unbounded", False) if config.unbounded is None else config.unbounded)
+        contraction = SceneContraction(order=float("inf")) if unbounded else None
+
+        self.field = GearField(
+            self.scene_box.aabb,
+            num_frames=self.num_frames,
+            num_gears=config.num_gears,
+            feature_dim=config.feature_dim,
+            resolutions=config.resolutions,
+            gear_feature_dim=config.gear_feature_dim,
+            gear_resolution=config.gear_resolution,
+            gear_time_resolution=config.gear_time_resolution,
+            geo_feat_dim=config.geo_feat_dim,
+            hidden_dim=config.hidden_dim,
+            hidden_dim_color=config.hidden_dim_color,
+            sam_dim=config.sam_dim,
+            sam_head_dim=config.sam_head_dim,
+            spatial_distortion=contraction,
+        )
+
+        self.proposal_networks = torch.nn.ModuleList()
+        if config.base_sampler == "proposal":
+            time_resolution = config.proposal_time_resolution or max(1, self.num_frames // 2)
+            for i in range(len(config.num_proposal_samples)):
+                self.proposal_networks.append(
+                    ProposalDensityField(
+                        self.scene_box.aabb,
+                        resolution=config.proposal_resolutions[min(i, len(config.proposal_resolutions) - 1)],
+                        time_resolution=time_resolution,
+                        feature_dim=config.proposal_feature_dim,
+                        spatial_distortion=contraction,
+                    )
+                )
+
+            def update_schedule(step: int) -> float:
+                return np.clip(
+                    np.interp(step, [0, config.proposal_warmup], [0, config.proposal_update_every]),
+                    1,
+                    config.proposal_update_every,
+                )
+
+            initial_sampler = UniformLinDispPiecewiseSampler() if unbounded else UniformSampler()
+            self.base_sampler = ProposalNetworkSampler(
+                num_proposal_samples_per_ray=config.num_proposal_samples,
+                num_nerf_samples_per_ray=config.num_samples,
+                num_proposal_network_iterations=len(config.num_proposal_samples),
+                update_sched=update_schedule,
+                initial_sampler=initial_sampler,
+            )
+        else:
+            self.base_sampler = UniformSampler(num_samples=config.num_samples)
+        self.split_sampler = SplitSampler(split_base=config.split_base)
+
+        near = metadata.get("near") if config.near_plane is None else config.near_plane
+        far = metadata.get("far") if config.far_plane is None else config.far_plane
+        if near is None or far is None:
+            CONSOLE.log("[yellow]Gear-NeRF: no near/far in config or metadata; rays are clipped to the scene box.")
+            self.collider = AABBBoxCollider(self.scene_box)
+        else:
+            self.collider = NearFarCollider(near_plane=float(near), far_plane=float(far))
+
+        self.renderer_rgb = RGBRenderer(background_color=config.background_color)
+        self.renderer_accumulation = AccumulationRenderer()
+        self.renderer_depth = DepthRenderer(method="median")
+        self.rgb_loss = MSELoss()
+        self._lpips: Dict[str, Any] = {}
+
+    def gear_values(
+        self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*bs 1"]]
+    ) -> Float[Tensor, "*bs"]:
+        """Eq 4: differentiable gear value g(x, t) (world positions, times in [0, 1])."""
+        return self.field.gear_values(positions, times)
+
+    def gear_levels(
+        self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*bs 1"]]
+    ) -> Int[Tensor, "*bs"]:
+        """Eq 5: gear level p(x, t)."""
+        return self.field.gear_levels(positions, times)
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        """Groups "fields" (planes h, k^G, B, F_theta), "gear_field" (h', k' only), "proposal_networks" if used."""
+        groups = {
+            "fields": self.field.radiance_parameters(),
+            "gear_field": list(self.field.gear_function.parameters()),
+        }
+        if len(self.proposal_networks):
+            groups["proposal_networks"] = list(self.proposal_networks.parameters())
+        return groups
+
+    def get_training_callbacks(
+        self, training_callback_attributes: TrainingCallbackAttributes
+    ) -> List[TrainingCallback]:
+        """Proposal weight annealing and update schedule (proposal base sampler only)."""
+        if not isinstance(self.base_sampler, ProposalNetworkSampler) or not self.config.use_proposal_weight_anneal:
+            return []
+        sampler = self.base_sampler
+        max_iters = self.config.proposal_weights_anneal_max_num_iters
+        slope = self.config.proposal_weights_anneal_slope
+
+        def set_anneal(step: int) -> None:
+            fraction = np.clip(step / max_iters, 0, 1)
+            sampler.set_anneal((slope * fraction) / ((slope - 1) * fraction + 1))
+
+        return [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], set_anneal, update_every_num_iters=1),
+            TrainingCallback(
+                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], sampler.step_cb, update_every_num_iters=1
+            ),
+        ]
+
+    def sample_base(self, ray_bundle: RayBundle) -> Tuple[RaySamples, List[Tensor], List[RaySamples]]:
+        """Base samples (n per ray) and, for the proposal sampler, its weights and samples per level."""
+        if isinstance(self.base_sampler, ProposalNetworkSampler):
+            density_fns = [functools.partial(net.density_fn, times=ray_bundle.times) for net in self.proposal_networks]
+            return self.base_sampler(ray_bundle, density_fns=density_fns)
+        return self.base_sampler(ray_bundle), [], []
+
+    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Any]:
+        """Render rgb, depth, accumulation, sam (Eq 8), gear_level, gear and num_samples per ray."""
+        base_samples, weights_list, ray_samples_list = self.sample_base(ray_bundle)
+        split = self.split_sampler(base_samples, self.field.gear_levels)
+        samples = split.ray_samples
+        field_outputs = self.field(
+            split.pack(samples.frustums.get_positions()),
+            split.pack(samples.frustums.directions),
+            None if samples.times is None else split.pack(samples.times),
+        )
+        density = torch.where(split.valid[..., None], split.unpack(field_outputs["density"]), 0.0)
+        weights = samples.get_weights(density)
+
+        rgb = self.renderer_rgb(rgb=split.unpack(field_outputs["rgb"]), weights=weights)
+        accumulation = self.renderer_accumulation(weights=weights)
+        sam = self.field.lift_sam(torch.sum(weights * split.unpack(field_outputs["sam"]), dim=-2), accumulation)
+        levels = split.unpack(field_outputs["gear_level"][:, None].to(weights.dtype))
+        gear_level = torch.where(
+            accumulation > 1e-6, torch.sum(weights * levels, dim=-2) / accumulation.clamp(min=1e-6), 1.0
+        )
+        gear_fraction = ((gear_level - 1.0) / max(self.config.num_gears - 1, 1)).clamp(0.0, 1.0)
+        outputs: Dict[str, Any] = {
+            "rgb": rgb,
+            "depth": self.renderer_depth(weights=weights, ray_samples=samples),
+            "accumulation": accumulation,
+            "sam": sam,
+            "gear_level": gear_level,
+            "gear": colormaps.apply_colormap(gear_fraction.detach(), colormaps.ColormapOptions(colormap="turbo")),
+            "num_samples": split.num_samples_per_ray[:, None].to(weights.dtype),
+        }
+        if ray_samples_list:
+            weights_list.append(split.to_base(weights))
+            ray_samples_list.append(base_samples)
+            if self.training:
+                outputs["weights_list"] = weights_list
+                outputs["ray_samples_list"] = ray_samples_list
+            for i in range(len(ray_samples_list) - 1):
+                outputs[f"prop_depth_{i}"] = self.renderer_depth(
+                    weights=weights_list[i], ray_samples=ray_samples_list[i]
+                )
+        return outputs
+
+    def get_metrics_dict(self, outputs: Dict[str, Any], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """PSNR of the batch and the mean number of samples per ray."""
+        image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        return {
+            "psnr": -10.0 * torch.log10(torch.mean((outputs["rgb"].detach() - image) ** 2)),
+            "samples_per_ray": outputs["num_samples"].mean(),
+        }
+
+    def get_loss_dict(
+        self, outputs: Dict[str, Any], batch: Dict[str, Tensor], metrics_dict: Optional[Dict[str, Tensor]] = None
+    ) -> Dict[str, Tensor]:
+        """Eq 2 (rgb), Eq 9 (sam, when the batch has "sam_features") and the K-Planes regularisers."""
+        config = self.config
+        pred_rgb, image = self.renderer_rgb.blend_background_for_loss_computation(
+            pred_image=outputs["rgb"],
+            pred_accumulation=outputs["accumulation"],
+            gt_image=batch["image"].to(self.device),
+        )
+        loss_dict = {"rgb_loss": self.rgb_loss(image, pred_rgb)}
+        if "sam_features" in batch:
+            target = batch["sam_features"].to(self.device)
+            loss_dict["sam_loss"] = config.sam_loss_mult * self.rgb_loss(target, outputs["sam"])
+        if self.training:
+            regularisers = self.field.regularisers()
+            loss_dict["plane_tv"] = config.plane_tv_mult * regularisers["plane_tv"]
+            loss_dict["l1_time_planes"] = config.l1_time_planes_mult * regularisers["l1_time_planes"]
+            loss_dict["time_smoothness"] = config.time_smoothness_mult * regularisers["time_smoothness"]
+            if "weights_list" in outputs:
+                proposal = [net.regularisers() for net in self.proposal_networks]
+                loss_dict["plane_tv_proposal"] = config.plane_tv_proposal_mult * sum(r["plane_tv"] for r in proposal)
+                loss_dict["l1_time_planes_proposal"] = config.l1_time_planes_proposal_mult * sum(
+                    r["l1_time_planes"] for r in proposal
+                )
+                loss_dict["time_smoothness_proposal"] = config.time_smoothness_proposal_mult * sum(
+                    r["time_smoothness"] for r in proposal
+                )
+                loss_dict["interlevel_loss"] = config.interlevel_loss_mult * interlevel_loss(
+                    outputs["weights_list"], outputs["ray_samples_list"]
+                )
+                loss_dict["distortion_loss"] = config.distortion_loss_mult * distortion_loss(
+                    outputs["weights_list"], outputs["ray_samples_list"]
+                )
+        return loss_dict
+
+    def lpips(self) -> Optional[torch.nn.Module]:
+        """torchmetrics LPIPS if its AlexNet weights are already on disk (never downloads), else None."""
+        if "metric" not in self._lpips:
+            path = lpips_weights_path()
+            if path.is_file():
+                from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+                self._lpips["metric"] = LearnedPerceptualImagePatchSimilarity(normalize=True)
+            else:
+                CONSOLE.log(f"[yellow]LPIPS skipped: AlexNet weights not found at {path} (nothing is downloaded).")
+                self._lpips["metric"] = None
+        metric = self._lpips["metric"]
+        return None if metric is None else metric.to(self.device)
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        """PSNR, SSIM (and LPIPS when its weights are local) on a full image; rgb, depth, gear images."""
+        from torchmetrics.functional import structural_similarity_index_measure
+
+        image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        rgb = outputs["rgb"]
+        image_nchw = torch.moveaxis(image, -1, 0)[None]
+        rgb_nchw = torch.moveaxis(rgb, -1, 0)[None]
+        metrics_dict = {
+            "psnr": float(-10.0 * torch.log10(torch.mean((rgb - image) ** 2))),
+            "ssim": float(structural_similarity_index_measure(rgb_nchw, image_nchw, data_range=1.0)),
+        }
+        lpips = self.lpips()
+        if lpips is not None:
+            metrics_dict["lpips"] = float(lpips(rgb_nchw.clamp(0, 1), image_nchw.clamp(0, 1)))
+        images_dict = {
+            "img": torch.cat([image, rgb], dim=1),
+            "accumulation": colormaps.apply_colormap(outputs["accumulation"]),
+            "depth": colormaps.apply_depth_colormap(outputs["depth"], accumulation=outputs["accumulation"]),
+            "gear": outputs["gear"],
+        }
+        return metrics_dict, images_dict

@@ -1,0 +1,128 @@
+"""Motion-aware spatial sampling (Gear-NeRF, Sec 4.4): split each sample at gear p into 2^(p-1).
+
+Rays end up with different numbers of samples. They are stored padded: row r holds the sub-samples of
+ray r in order along the ray, followed by zero-length segments at the ray's far end. A zero-length
+segment has delta = 0, hence alpha = 0 and weight 0 in ``RaySamples.get_weights``, and it leaves the
+transmittance of the real samples untouched, so nerfstudio's renderers work unchanged. The field is
+evaluated only on the real (packed) sub-samples; ``unpack`` fills each padding slot with the values of
+the ray's last real sub-sample, which keeps the ``"last_sample"`` background colour correct.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+from jaxtyping import Bool, Float, Int
+from torch import Tensor, nn
+
+from nerfstudio.cameras.rays import RaySamples
+
+GearLevelFn = Callable[[Float[Tensor, "*bs 3"], Optional[Float[Tensor, "*bs 1"]]], Int[Tensor, "*bs"]]
+
+
+@dataclass
+class SplitRaySamples:
+    """Split samples, padded per ray, with the maps between padded and packed layouts."""
+
+    ray_samples: RaySamples
+    """Padded samples, shape (num_rays, max_samples); padding has start = end = the ray's far end."""
+    valid: Bool[Tensor, "num_rays max_samples"]
+    """True for real sub-samples, False for padding."""
+    sample_index: Int[Tensor, "num_valid"]
+    """Flat (row-major) padded index of each real sub-sample: the packed order."""
+    packed_index: Int[Tensor, "num_rays max_samples"]
+    """Packed index of each padded slot; padding points at the ray's last real sub-sample."""
+    parent: Int[Tensor, "num_rays max_samples"]
+    """Index, within its ray, of the base sample each slot was split from."""
+    num_base_samples: int
+    """Base samples per ray, n."""
+    num_samples_per_ray: Int[Tensor, "num_rays"]
+    """Real sub-samples per ray: sum over the ray's base samples of split_base^(p-1)."""
+
+    def pack(self, values: Tensor) -> Tensor:
+        """(num_rays, max_samples, C) -> (num_valid, C)."""
+        return values.reshape(-1, values.shape[-1])[self.sample_index]
+
+    def unpack(self, values: Tensor) -> Tensor:
+        """(num_valid, C) -> (num_rays, max_samples, C); padding copies the ray's last real sub-sample."""
+        return values[self.packed_index]
+
+    def to_base(self, weights: Float[Tensor, "num_rays max_samples 1"]) -> Float[Tensor, "num_rays n 1"]:
+        """Sum sub-sample weights into their base samples (exact: sub-segments tile the base segment)."""
+        base = weights.new_zeros((weights.shape[0], self.num_base_samples, 1))
+        return base.scatter_add(1, self.parent[..., None], weights)
+
+
+def split_ray_samples(
+    ray_samples: RaySamples, levels: Int[Tensor, "num_rays n"], split_base: int = 2
+) -> SplitRaySamples:
+    """Split base sample i of each ray into split_base^(p_i - 1) equal sub-segments of [start_i, end_i].
+
+    Sub-segment j of c has start s + (e - s) * j / c and end s + (e - s) * (j + 1) / c, with the last end
+    set to e: starts and ends are exact, consecutive sub-segments share their boundary bit for bit.
+    """
+    num_rays, num_base = levels.shape
+    device = levels.device
+    counts = split_base ** (levels.long() - 1)
+    cumulative = counts.cumsum(dim=1)
+    num_samples_per_ray = cumulative[:, -1]
+    max_samples = int(num_samples_per_ray.max()) if num_rays else 0
+
+    slot = torch.arange(max_samples, device=device).expand(num_rays, max_samples)
+    valid = slot < num_samples_per_ray[:, None]
+    parent = torch.searchsorted(cumulative, slot.contiguous(), right=True).clamp(max=num_base - 1)
+    count = counts.gather(1, parent)
+    sub_index = slot - (cumulative.gather(1, parent) - count)
+
+    starts = ray_samples.frustums.starts[..., 0]
+    ends = ray_samples.frustums.ends[..., 0]
+    parent_start = starts.gather(1, parent)
+    parent_end = ends.gather(1, parent)
+    length = parent_end - parent_start
+    sub_start = parent_start + length * (sub_index / count)
+    sub_end = torch.where(sub_index + 1 == count, parent_end, parent_start + length * ((sub_index + 1) / count))
+    far_end = ends[:, -1:].expand(num_rays, max_samples)
+    sub_start = torch.where(valid, sub_start, far_end)[..., None]
+    sub_end = torch.where(valid, sub_end, far_end)[..., None]
+
+    flat_parent = parent + torch.arange(num_rays, device=device)[:, None] * num_base
+    gathered = ray_samples.reshape((num_rays * num_base,))[flat_parent]
+    split = dataclasses.replace(
+        gathered,
+        frustums=dataclasses.replace(gathered.frustums, starts=sub_start, ends=sub_end),
+        deltas=sub_end - sub_start,
+        spacing_starts=None,
+        spacing_ends=None,
+        spacing_to_euclidean_fn=None,
+    )
+    flat_valid = valid.reshape(-1)
+    return SplitRaySamples(
+        ray_samples=split,
+        valid=valid,
+        sample_index=flat_valid.nonzero()[:, 0],
+        packed_index=(flat_valid.long().cumsum(0) - 1).reshape(num_rays, max_samples),
+        parent=parent,
+        num_base_samples=num_base,
+        num_samples_per_ray=num_samples_per_ray,
+    )
+
+
+class SplitSampler(nn.Module):
+    """Sec 4.4: query p at each base sample (midpoint, time) and split it into split_base^(p-1) samples.
+
+    Args:
+        split_base: 2 in the paper (its ablation also tries 3).
+    """
+
+    def __init__(self, split_base: int = 2) -> None:
+        super().__init__()
+        self.split_base = split_base
+
+    def forward(self, ray_samples: RaySamples, gear_level_fn: GearLevelFn) -> SplitRaySamples:
+        """Split ``ray_samples`` (num_rays, n) by the gear levels ``gear_level_fn(positions, times)``."""
+        with torch.no_grad():
+            levels = gear_level_fn(ray_samples.frustums.get_positions(), ray_samples.times)
+        return split_ray_samples(ray_samples, levels, self.split_base)

@@ -1,0 +1,222 @@
+"""GearField: gear projection (Eq 5), masks (Eq 6), serial feature volumes (Eq 3, 7), gear function (Eq 4)."""
+
+import math
+
+import pytest
+import torch
+
+from gear_nerfstudio.gear_field import GearField, gear_level, temporal_resolutions
+
+AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def reference_level(g: float, num_gears: int) -> int:
+    """Eq 5 written out case by case."""
+    if math.isnan(g) or g < 1:
+        return 1
+    if g >= num_gears:
+        return num_gears
+    return math.ceil(g)
+
+
+def small_field(num_frames: int = 50, num_gears: int = 4, **kwargs) -> GearField:
+    torch.manual_seed(0)
+    return GearField(
+        AABB,
+        num_frames=num_frames,
+        num_gears=num_gears,
+        feature_dim=8,
+        resolutions=(8, 16),
+        gear_resolution=8,
+        **kwargs,
+    )
+
+
+def random_inputs(n: int = 500, seed: int = 1):
+    generator = torch.Generator().manual_seed(seed)
+    positions = torch.rand(n, 3, generator=generator) * 2.4 - 1.2
+    times = torch.rand(n, 1, generator=generator)
+    return positions, times
+
+
+def set_gear_ramp(field: GearField, low: float, high: float) -> None:
+    """Make g(x, t) = 1 + ramp(x) with ramp linear from ``low`` at x = -1 to ``high`` at x = +1."""
+    gear_function = field.gear_function
+    with torch.no_grad():
+        space, time = gear_function.space_planes.planes[0], gear_function.time_planes.planes[0]
+        space.zero_()
+        time.zero_()
+        space[2, 0] = 1.0  # h'_3(y, z), channel 0
+        time[2, 0] = torch.linspace(low, high, time.shape[-1])  # k'_3(x, t), channel 0, along x
+
+
+@pytest.mark.parametrize("num_gears", [1, 2, 4])
+def test_gear_level_at_and_around_every_integer(num_gears):
+    values, expected = [], []
+    for k in range(0, num_gears + 2):
+        for g in (k - 1e-6, float(k), k + 1e-6):
+            values.append(g)
+            expected.append(reference_level(g, num_gears))
+    levels = gear_level(torch.tensor(values, dtype=torch.float64), num_gears)
+    assert levels.dtype == torch.long
+    assert levels.tolist() == expected
+
+
+def test_gear_level_spot_values_and_non_finite():
+    g = torch.tensor([1.0, 1.0 + 1e-6, 2.0, 2.0 + 1e-6, 4.0 - 1e-6, 4.0, 7.5, 0.3, -3.0, -math.inf, math.inf, math.nan])
+    assert gear_level(g, 4).tolist() == [1, 2, 2, 3, 4, 4, 4, 1, 1, 1, 4, 1]
+
+
+def test_gear_masks_partition_samples():
+    g = torch.cat([torch.randn(1000) * 3 + 2, torch.tensor([math.inf, -math.inf, math.nan])])
+    levels = gear_level(g, 4)
+    masks = levels[:, None] == torch.arange(1, 5)  # Eq 6
+    assert torch.equal(masks.sum(dim=1), torch.ones(len(g), dtype=torch.long))
+    assert set(levels.tolist()) == {1, 2, 3, 4}
+
+
+@pytest.mark.parametrize(
+    "num_gears, num_frames, expected",
+    [
+        (4, 50, [1, 17, 34, 50]),
+        (4, 100, [1, 34, 67, 100]),
+        (2, 50, [1, 50]),
+        (1, 50, [50]),
+        (4, 1, [1, 1, 1, 1]),
+        (1, 1, [1]),
+    ],
+)
+def test_temporal_resolutions(num_gears, num_frames, expected):
+    assert temporal_resolutions(num_gears, num_frames) == expected
+    field = small_field(num_frames=num_frames, num_gears=num_gears)
+    for gear_planes, t_res in zip(field.time_planes, expected):
+        assert [plane.shape[-2] for plane in gear_planes.planes] == [t_res, t_res]
+        assert [plane.shape[-1] for plane in gear_planes.planes] == [8, 16]
+
+
+def test_gear_function_starts_at_exactly_one_with_gradients_to_both_planes():
+    field = small_field()
+    positions, times = random_inputs()
+    g = field.gear_values(positions, times)
+    assert torch.equal(g, torch.ones_like(g))
+    assert torch.equal(field.gear_levels(positions, times), torch.ones(len(positions), dtype=torch.long))
+    g.sum().backward()
+    for plane in (field.gear_function.space_planes.planes[0], field.gear_function.time_planes.planes[0]):
+        assert plane.grad is not None and plane.grad.abs().sum() > 0
+
+
+def test_every_gear_starts_as_the_static_field():
+    field = small_field()
+    positions, times = random_inputs()
+    x = positions.clamp(-1, 1)
+    features = [field.gear_feature(x, times, gear) for gear in range(1, 5)]
+    for other in features[1:]:
+        assert torch.allclose(other, features[0], atol=1e-6)
+    other_times = torch.rand_like(times)
+    assert torch.allclose(field.gear_feature(x, other_times, 4), features[0], atol=1e-6)
+
+
+def test_grouped_features_match_dense_sum_over_gears():
+    field = small_field()
+    with torch.no_grad():
+        for triple in field.time_planes:
+            for plane in triple.planes:
+                plane.uniform_(0.5, 1.5)
+    positions, times = random_inputs()
+    x = positions.clamp(-1, 1)
+    levels = torch.randint(1, 5, (len(x),))
+    grouped = field.gear_features(x, times, levels)
+    dense = sum((levels == gear)[:, None] * field.gear_feature(x, times, gear) for gear in range(1, 5))  # Eq 7
+    assert torch.allclose(grouped, dense, atol=1e-6)
+    assert not torch.allclose(field.gear_feature(x, times, 2), field.gear_feature(x, times, 4), atol=1e-3)
+
+
+def test_gradients_reach_only_gears_with_samples():
+    field = small_field()
+    positions, times = random_inputs()
+    x = positions.clamp(-1, 1)
+    levels = torch.randint(1, 5, (len(x),))
+    levels[levels == 2] = 3
+    field.gear_features(x, times, levels).square().sum().backward()
+    for gear, triple in enumerate(field.time_planes, start=1):
+        for plane in triple.planes:
+            if gear == 2:
+                assert plane.grad is None or plane.grad.abs().sum() == 0
+            else:
+                assert plane.grad is not None and plane.grad.abs().sum() > 0
+    assert all(plane.grad.abs().sum() > 0 for plane in field.space_planes.planes)
+    assert field.basis.weight.grad.abs().sum() > 0
+
+
+def test_forward_uses_the_gear_function_and_reaches_every_gear():
+    field = small_field()
+    set_gear_ramp(field, 0.0, 4.0)  # g = 1 + 2 (x + 1), from 1 to 5
+    positions, times = random_inputs(2000)
+    positions = positions.clamp(-1, 1)
+    expected = gear_level(1.0 + 2.0 * (positions[:, 0] + 1.0), 4)
+    levels = field.gear_levels(positions, times)
+    away_from_boundaries = ((1.0 + 2.0 * (positions[:, 0] + 1.0)) % 1.0 - 0.5).abs() < 0.45
+    assert torch.equal(levels[away_from_boundaries], expected[away_from_boundaries])
+    assert set(levels.tolist()) == {1, 2, 3, 4}
+
+    directions = torch.nn.functional.normalize(torch.randn_like(positions), dim=-1)
+    outputs = field(positions, directions, times)
+    assert torch.equal(outputs["gear_level"], levels)
+    (outputs["density"].sum() + outputs["rgb"].sum() + outputs["sam"].sum()).backward()
+    for triple in field.time_planes:
+        assert all(plane.grad is not None and plane.grad.abs().sum() > 0 for plane in triple.planes)
+    assert all(p.grad is None for p in field.gear_function.parameters())
+
+
+def test_outputs_shapes_range_and_density_outside_box():
+    field = small_field(sam_dim=64, sam_head_dim=None)
+    positions, times = random_inputs()
+    directions = torch.nn.functional.normalize(torch.randn_like(positions), dim=-1)
+    outputs = field(positions, directions, times)
+    assert outputs["density"].shape == (len(positions), 1)
+    assert outputs["rgb"].shape == (len(positions), 3)
+    assert outputs["sam"].shape == (len(positions), 64)
+    assert all(torch.isfinite(v.float()).all() for v in outputs.values())
+    assert ((outputs["rgb"] >= 0) & (outputs["rgb"] <= 1)).all()
+    outside = (positions.abs() > 1).any(dim=-1)
+    assert outside.any() and (~outside).any()
+    assert (outputs["density"][outside] == 0).all()
+    assert (outputs["density"][~outside] > 0).all()
+    no_times = field(positions, directions, None)
+    assert torch.allclose(no_times["density"], field(positions, directions, torch.zeros_like(times))["density"])
+
+
+def test_unbounded_scene_is_contracted():
+    from nerfstudio.field_components.spatial_distortions import SceneContraction
+
+    field = small_field(spatial_distortion=SceneContraction(order=float("inf")))
+    positions = torch.tensor([[100.0, -50.0, 3.0], [0.2, 0.1, -0.3]])
+    outputs = field(positions, torch.tensor([[0.0, 0.0, 1.0]] * 2), torch.zeros(2, 1))
+    assert (outputs["density"] > 0).all() and torch.isfinite(outputs["density"]).all()
+
+
+def test_sam_lift_is_affine_in_the_rendered_embedding():
+    field = small_field(sam_dim=32, sam_head_dim=4)
+    embeddings = torch.randn(5, 7, 4)
+    weights = torch.rand(5, 7, 1) * 0.2
+    lifted_then_rendered = (weights * field.sam_lift(embeddings)).sum(dim=-2)
+    rendered_then_lifted = field.lift_sam((weights * embeddings).sum(dim=-2), weights.sum(dim=-2))
+    assert torch.allclose(lifted_then_rendered, rendered_then_lifted, atol=1e-5)
+
+
+def test_radiance_parameters_exclude_the_gear_function():
+    field = small_field()
+    radiance = {id(p) for p in field.radiance_parameters()}
+    gear = {id(p) for p in field.gear_function.parameters()}
+    assert gear and not radiance & gear
+    assert radiance | gear == {id(p) for p in field.parameters()}
+
+
+def test_regularisers_start_at_zero_for_time_planes_and_respond_to_changes():
+    field = small_field()
+    reg = field.regularisers()
+    assert reg["l1_time_planes"] == 0 and reg["time_smoothness"] == 0 and reg["plane_tv"] > 0
+    with torch.no_grad():
+        field.time_planes[3].planes[0][:, :, 1::2] += 0.5  # zig-zag along t
+    reg = field.regularisers()
+    assert reg["l1_time_planes"] > 0 and reg["time_smoothness"] > 0

@@ -1,0 +1,204 @@
+"""GearNeRFModel: forward, losses, backward, parameter groups and evaluation on the CPU."""
+
+import pytest
+import torch
+
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.field_components.spatial_distortions import SceneContraction
+from nerfstudio.model_components.scene_colliders import AABBBoxCollider, NearFarCollider
+
+from gear_nerfstudio.gear_model import GearNeRFModelConfig, lpips_weights_path
+
+OUTPUT_KEYS = {"rgb", "depth", "accumulation", "sam", "gear_level", "gear", "num_samples"}
+METADATA = {"near": 0.5, "far": 4.5, "num_frames": 6, "unbounded": False}
+
+
+def make_model(metadata=METADATA, **overrides):
+    torch.manual_seed(0)
+    config = GearNeRFModelConfig(
+        feature_dim=8,
+        resolutions=(8, 16),
+        gear_resolution=8,
+        hidden_dim=16,
+        hidden_dim_color=16,
+        sam_dim=32,
+        sam_head_dim=8,
+        num_samples=12,
+        **overrides,
+    )
+    return config.setup(
+        scene_box=SceneBox(torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=4, metadata=metadata
+    )
+
+
+def make_rays(num_rays: int = 48, seed: int = 0) -> RayBundle:
+    generator = torch.Generator().manual_seed(seed)
+    origins = torch.tensor([0.0, 0.0, 2.5]).expand(num_rays, 3)
+    targets = torch.rand(num_rays, 3, generator=generator) * 1.6 - 0.8
+    return RayBundle(
+        origins=origins.clone(),
+        directions=torch.nn.functional.normalize(targets - origins, dim=-1),
+        pixel_area=torch.full((num_rays, 1), 1e-4),
+        camera_indices=torch.zeros(num_rays, 1, dtype=torch.long),
+        times=torch.rand(num_rays, 1, generator=generator),
+    )
+
+
+def make_batch(num_rays: int = 48, sam_dim: int = 32, with_sam: bool = True):
+    batch = {"image": torch.rand(num_rays, 3)}
+    if with_sam:
+        batch["sam_features"] = torch.randn(num_rays, sam_dim)
+    return batch
+
+
+def force_gears_in_upper_half(model, gear: int) -> None:
+    """g = gear - 0.5 (level ``gear``) where y > 0.43 and exactly 1 (level 1) where y < 0.14 (8 plane rows)."""
+    gear_function = model.field.gear_function
+    with torch.no_grad():
+        space, time = gear_function.space_planes.planes[0], gear_function.time_planes.planes[0]
+        space.zero_()
+        time.zero_()
+        resolution = space.shape[-1]
+        space[0, 0, resolution // 2 + 1 :, :] = gear - 1.5  # h'_1(x, y), rows = y
+        time[0, 0] = 1.0  # k'_1(z, t)
+
+
+@pytest.mark.parametrize("base_sampler", ["uniform", "proposal"])
+def test_forward_loss_backward(base_sampler):
+    model = make_model(base_sampler=base_sampler, num_proposal_samples=(16,), proposal_resolutions=(8,))
+    model.train()
+    rays, batch = make_rays(), make_batch()
+    outputs = model(rays)
+    assert OUTPUT_KEYS <= outputs.keys()
+    shapes = {key: tuple(outputs[key].shape) for key in OUTPUT_KEYS}
+    assert shapes == {
+        "rgb": (48, 3),
+        "depth": (48, 1),
+        "accumulation": (48, 1),
+        "sam": (48, 32),
+        "gear_level": (48, 1),
+        "gear": (48, 3),
+        "num_samples": (48, 1),
+    }
+    for key in OUTPUT_KEYS:
+        assert torch.isfinite(outputs[key]).all(), key
+    assert (outputs["num_samples"] == 12).all() and (outputs["gear_level"] == 1).all()
+    assert ((outputs["accumulation"] > 0) & (outputs["accumulation"] <= 1 + 1e-5)).all()
+
+    metrics = model.get_metrics_dict(outputs, batch)
+    assert torch.isfinite(metrics["psnr"]) and metrics["samples_per_ray"] == 12
+    losses = model.get_loss_dict(outputs, batch, metrics)
+    expected = {"rgb_loss", "sam_loss", "plane_tv", "l1_time_planes", "time_smoothness"}
+    if base_sampler == "proposal":
+        expected |= {"interlevel_loss", "distortion_loss", "plane_tv_proposal"}
+    assert expected <= losses.keys()
+    total = sum(losses.values())
+    assert torch.isfinite(total)
+    total.backward()
+    groups = model.get_param_groups()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in groups["fields"])
+    assert all(p.grad is None for p in groups["gear_field"])
+    if base_sampler == "proposal":
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in groups["proposal_networks"])
+    assert torch.isclose(losses["rgb_loss"], torch.mean((outputs["rgb"] - batch["image"]) ** 2))
+
+
+def test_sam_loss_only_with_sam_features():
+    model = make_model()
+    model.train()
+    outputs = model(make_rays())
+    assert "sam_loss" not in model.get_loss_dict(outputs, make_batch(with_sam=False))
+    batch = make_batch()
+    loss = model.get_loss_dict(outputs, batch)["sam_loss"]
+    assert torch.isclose(loss, torch.mean((outputs["sam"] - batch["sam_features"]) ** 2))
+
+
+def test_param_groups_separate_the_gear_function():
+    model = make_model()
+    groups = model.get_param_groups()
+    fields, gear = {id(p) for p in groups["fields"]}, {id(p) for p in groups["gear_field"]}
+    assert gear == {id(p) for p in model.field.gear_function.parameters()}
+    assert not fields & gear
+    assert fields | gear == {id(p) for p in model.field.parameters()}
+    assert "proposal_networks" not in groups
+
+
+def test_gear_values_and_levels_api():
+    model = make_model()
+    positions = torch.rand(5, 7, 3) * 2 - 1
+    times = torch.rand(5, 7, 1)
+    g = model.gear_values(positions, times)
+    assert g.shape == (5, 7) and torch.equal(g, torch.ones(5, 7))
+    g.sum().backward()
+    assert all(p.grad is not None for p in model.field.gear_function.parameters())
+    assert torch.equal(model.gear_levels(positions, times), torch.ones(5, 7, dtype=torch.long))
+    force_gears_in_upper_half(model, 3)
+    levels = model.gear_levels(positions, times[:, :1])
+    upper, lower = positions[..., 1] > 0.45, positions[..., 1] < 0.1
+    assert upper.any() and lower.any()
+    assert (levels[upper] == 3).all() and (levels[lower] == 1).all()
+
+
+def test_upshifted_region_gets_more_samples_and_a_higher_gear_image():
+    model = make_model()
+    force_gears_in_upper_half(model, 4)
+    model.train()
+    rays = make_rays(64)
+    outputs = model(rays)
+    samples = outputs["num_samples"][:, 0]
+    assert samples.min() >= 12 and samples.max() <= 12 * 8 and samples.max() > 12
+    upper = rays.directions[:, 1] > 0.2
+    assert samples[upper].float().mean() > samples[~upper].float().mean()
+    assert outputs["gear_level"][upper].mean() > outputs["gear_level"][~upper].mean()
+    losses = model.get_loss_dict(outputs, make_batch(64))
+    sum(losses.values()).backward()
+    for triple in (model.field.time_planes[0], model.field.time_planes[3]):
+        assert all(plane.grad is not None and plane.grad.abs().sum() > 0 for plane in triple.planes)
+
+
+def test_metadata_drives_collider_frames_and_contraction():
+    model = make_model()
+    assert isinstance(model.collider, NearFarCollider)
+    assert (model.collider.near_plane, model.collider.far_plane) == (0.5, 4.5)
+    assert model.field.time_resolutions == [1, 3, 4, 6]
+    assert model.field.spatial_distortion is None
+
+    model = make_model(metadata={**METADATA, "unbounded": True}, near_plane=0.1)
+    assert isinstance(model.field.spatial_distortion, SceneContraction)
+    assert model.collider.near_plane == 0.1
+
+    model = make_model(metadata={})
+    assert isinstance(model.collider, AABBBoxCollider)
+    assert model.field.time_resolutions == [1, 1, 1, 1]
+
+
+def test_eval_image_metrics():
+    model = make_model()
+    model.eval()
+    height, width = 16, 16
+    with torch.no_grad():
+        flat = model(make_rays(height * width))
+    outputs = {key: value.reshape(height, width, -1) for key, value in flat.items()}
+    batch = {"image": torch.rand(height, width, 3)}
+    metrics, images = model.get_image_metrics_and_images(outputs, batch)
+    assert {"psnr", "ssim"} <= metrics.keys()
+    assert ("lpips" in metrics) == lpips_weights_path().is_file()
+    assert all(isinstance(v, float) for v in metrics.values())
+    assert images["img"].shape == (height, 2 * width, 3)
+    assert {"accumulation", "depth", "gear"} <= images.keys()
+
+
+def test_huge_densities_with_padding_stay_finite():
+    model = make_model()
+    force_gears_in_upper_half(model, 4)
+    with torch.no_grad():
+        model.field.density_net.layers[-1].bias[0] = 200.0  # trunc_exp overflows to inf
+    model.train()
+    outputs = model(make_rays(64))
+    assert (outputs["num_samples"] > 12).any()
+    for key in OUTPUT_KEYS:
+        assert torch.isfinite(outputs[key]).all(), key
+    losses = model.get_loss_dict(outputs, make_batch(64))
+    sum(losses.values()).backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
