@@ -49,6 +49,7 @@ class DemoCommand:
                 "--output-dir", str(runs), "--experiment-name", "demo", "--timestamp", "demo",
                 "--max-num-iterations", str(self.iterations), "--steps-per-eval-all-images", "1000000",
                 "--machine.device-type", self.device, "--vis", "tensorboard",
+                "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam-cache"),
                 "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache"),
             ]
         )

@@ -36,6 +36,7 @@ from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gear_nerfstudio.gear_field import GearField, ProposalDensityField
+from gear_nerfstudio.gear_updates import GearUpdateConfig, GearUpdater
 from gear_nerfstudio.split_sampler import SplitSampler
 
 
@@ -120,6 +121,8 @@ class GearNeRFModelConfig(ModelConfig):
     """Proposal (interlevel) loss, proposal base sampler only."""
     distortion_loss_mult: float = 1e-3
     """Distortion loss on the base samples, proposal base sampler only."""
+    gear_updates: GearUpdateConfig = field(default_factory=GearUpdateConfig)
+    """Gear-assignment updates during training (Sec 4.3)."""
 
 
 def lpips_weights_path() -> Path:
@@ -231,9 +234,23 @@ class GearNeRFModel(Model):
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
-        """Proposal weight annealing and update schedule (proposal base sampler only)."""
+        """Gear-assignment updates (Sec 4.3); proposal weight annealing and update schedule if used."""
+        callbacks = []
+        attributes = training_callback_attributes
+        if self.config.gear_updates.enabled and attributes.pipeline is not None and attributes.trainer is not None:
+            trainer = attributes.trainer
+            updater = GearUpdater(
+                self.config.gear_updates,
+                self,
+                attributes.pipeline.datamanager,
+                attributes.optimizers.optimizers["gear_field"],
+                last_step=getattr(trainer, "_start_step", 0) + trainer.config.max_num_iterations - 1,
+            )
+            callbacks.append(
+                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], updater, update_every_num_iters=1)
+            )
         if not isinstance(self.base_sampler, ProposalNetworkSampler) or not self.config.use_proposal_weight_anneal:
-            return []
+            return callbacks
         sampler = self.base_sampler
         max_iters = self.config.proposal_weights_anneal_max_num_iters
         slope = self.config.proposal_weights_anneal_slope
@@ -242,7 +259,7 @@ class GearNeRFModel(Model):
             fraction = np.clip(step / max_iters, 0, 1)
             sampler.set_anneal((slope * fraction) / ((slope - 1) * fraction + 1))
 
-        return [
+        return callbacks + [
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], set_anneal, update_every_num_iters=1),
             TrainingCallback(
                 [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], sampler.step_cb, update_every_num_iters=1

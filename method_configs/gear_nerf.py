@@ -10,7 +10,6 @@ Long videos never load all frames: the datamanager keeps 40 training images in m
 from __future__ import annotations
 
 from nerfstudio.configs.base_config import ViewerConfig
-from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from gear_nerfstudio.schedulers import FloatCosineDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
@@ -18,6 +17,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
+from gear_nerfstudio.gear_datamanager import GearDataManagerConfig
 from gear_nerfstudio.gear_model import GearNeRFModelConfig
 
 LEARNING_RATE = 0.02
@@ -48,7 +48,7 @@ def trainer_config(
         max_num_iterations=max_num_iterations,
         mixed_precision=False,
         pipeline=VanillaPipelineConfig(
-            datamanager=VanillaDataManagerConfig(
+            datamanager=GearDataManagerConfig(
                 dataparser=TechnicolorDataParserConfig(),
                 train_num_rays_per_batch=num_rays_per_batch,
                 eval_num_rays_per_batch=num_rays_per_batch,

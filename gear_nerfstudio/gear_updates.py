@@ -1,0 +1,336 @@
+"""Gear-assignment updates (Gear-NeRF Sec 4.3, Eq 10-11) as a nerfstudio training callback.
+
+Every L epochs: render a few training views (RGB and SAM features), compute the rendering loss map
+L(r) = L_pho(r) + lambda L_SAM(r), patchify it, take the centres of the top-k highest / lowest patches
+as positive / negative prompts, decode the upshift mask from the ground-truth frame's SAM embedding,
+then push the gear function g towards p + 1 on points of rays inside the mask and towards p outside
+(Eq 10). Updates stop once the mean variance of the loss maps falls below a threshold, or when fewer
+than L' epochs of training remain.
+
+Changes from the paper, to keep p = ceil(g) (Eq 5) away from its jumps and the update local:
+- Eq 10 pulls g towards the number p + 1 (or p), exactly where ceil jumps (g slightly above 2 is
+  already gear 3). Here each point is pulled into the interval of its target level q, shrunk by a
+  margin, [q - 1 + margin, q - margin] (open-ended below for gear 1 and above for the top gear): a
+  squared hinge, zero for points already there, so settled points do not move the planes;
+- points along a ray count with their volume-rendering weights, so the update acts on the surfaces
+  the pixel sees rather than on the empty space in front of them;
+- Eq 11's single gradient step is repeated (at most `max_steps`) until the sampled points reach their
+  target levels, since one small step rarely moves g across a level boundary.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Dict, List, Literal, Optional, Tuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.model_components.ray_samplers import UniformSampler
+from nerfstudio.utils import colormaps
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
+
+from gear_nerfstudio.sam.interface import sample_features
+
+if TYPE_CHECKING:
+    from gear_nerfstudio.gear_model import GearNeRFModel
+
+
+@dataclass
+class GearUpdateConfig:
+    """Schedule and settings of the gear-assignment updates (Sec 4.3; paper values where stated)."""
+
+    enabled: bool = True
+    """False: never update gears (ablation "no gear updates")."""
+    epochs_between_updates: float = 3.0
+    """L: epochs of radiance-field training between updates."""
+    epochs_after_updates: float = 10.0
+    """L': epochs of training kept after the last update."""
+    views_per_update: int = 4
+    """Training views (camera, time) rendered per update."""
+    loss_map_size: int = 128
+    """Loss maps are rendered with this longest side (or the image's, if smaller)."""
+    patch_size: int = 8
+    """Patch side in loss-map pixels."""
+    top_k: int = 3
+    """k highest-loss patches give positive prompts, k lowest negative ones."""
+    sam_loss_weight: float = 0.01
+    """lambda in L(r) = L_pho(r) + lambda L_SAM(r)."""
+    variance_threshold: float = 1e-4
+    """Updates stop once the mean variance of the loss maps is below this."""
+    mask_source: Literal["sam", "loss_threshold"] = "sam"
+    """'sam': SAM decoder on prompts; 'loss_threshold': RGB loss map above mean + k std (the paper's
+    "w/o embedding" ablation)."""
+    loss_threshold_std: float = 2.0
+    """k for mask_source 'loss_threshold'."""
+    rays_per_set: int = 4096
+    """Rays sampled inside (S_upshift) and outside (S_stay) the masks, per update."""
+    stay_weight: float = 1.0
+    """lambda_stay of Eq 10."""
+    margin: float = 0.25
+    """Points are pulled this far inside the interval of their target level."""
+    max_steps: int = 300
+    """Gradient steps on the gear function per update (Eq 11, repeated until the targets are met)."""
+
+
+def patch_prompts(loss_map: Tensor, patch_size: int, top_k: int) -> Tuple[Tensor, Tensor]:
+    """Centres (x, y) of the top-k highest (label 1) and lowest (label 0) average-loss patches."""
+    height, width = loss_map.shape
+    size = max(1, min(patch_size, height, width))
+    pooled = F.avg_pool2d(loss_map[None, None], size, stride=size, ceil_mode=True)[0, 0]
+    k = min(top_k, pooled.numel() // 2)
+    flat = pooled.flatten()
+    high = torch.topk(flat, k).indices
+    low = torch.topk(-flat, k).indices
+    index = torch.cat([high, low])
+    rows, cols = index // pooled.shape[1], index % pooled.shape[1]
+    centres_x = torch.clamp((cols.float() + 0.5) * size, max=width - 0.5)
+    centres_y = torch.clamp((rows.float() + 0.5) * size, max=height - 0.5)
+    labels = torch.cat([torch.ones(k), torch.zeros(k)])
+    return torch.stack([centres_x, centres_y], dim=-1), labels
+
+
+def level_targets(levels: Tensor, upshift: Tensor, num_gears: int) -> Tensor:
+    """Target levels of Eq 10: p + 1 for S_upshift (never above N_gear), p for S_stay."""
+    return torch.where(upshift, (levels + 1).clamp(max=num_gears), levels)
+
+
+def upshift_loss(
+    g: Tensor, targets: Tensor, weights: Tensor, upshift: Tensor, stay_weight: float, num_gears: int, margin: float
+) -> Tensor:
+    """Eq 10 as a weighted squared hinge: the distance of g from the interval of its target level q,
+    [q - 1 + margin, q - margin] (no lower bound for q = 1, no upper bound for q = N_gear)."""
+    low = torch.where(targets > 1, targets - 1 + margin, torch.full_like(g, -torch.inf))
+    high = torch.where(targets < num_gears, targets - margin, torch.full_like(g, torch.inf))
+    error = (torch.relu(low - g) + torch.relu(g - high)).square() * weights
+    up = error[upshift].sum() / weights[upshift].sum().clamp(min=1e-12)
+    stay = error[~upshift].sum() / weights[~upshift].sum().clamp(min=1e-12)
+    return up + stay_weight * stay
+
+
+def shift_gears(
+    field,
+    optimizer: torch.optim.Optimizer,
+    points: Tensor,
+    times: Tensor,
+    weights: Tensor,
+    upshift: Tensor,
+    targets: Tensor,
+    stay_weight: float,
+    margin: float,
+    max_steps: int,
+) -> int:
+    """Eq 11 steps of `optimizer` (on the gear function only) until the weighted points sit at their
+    target levels, at most max_steps; returns the number of steps taken."""
+    counted = weights > 1e-3 * weights.max().clamp(min=1e-12)
+    step = 0
+    for step in range(1, max_steps + 1):
+        optimizer.zero_grad(set_to_none=True)
+        g = field.gear_values(points, times)
+        upshift_loss(g, targets, weights, upshift, stay_weight, field.num_gears, margin).backward()
+        optimizer.step()
+        with torch.no_grad():
+            reached = field.gear_levels(points, times) == targets
+        if bool(reached[counted].all()):
+            break
+    optimizer.zero_grad(set_to_none=True)
+    return step
+
+
+@dataclass
+class LossMap:
+    """One rendered training view at loss-map resolution."""
+
+    image_index: int
+    camera: Cameras
+    rgb: Tensor  # (h, w, 3) ground truth
+    loss: Tensor  # (h, w) L(r)
+    rgb_loss: Tensor  # (h, w) L_pho(r)
+    surface: Tensor  # (h * w, 3) points at the rendered depth of each pixel
+
+
+class GearUpdater:
+    """Runs the updates; called after every training iteration."""
+
+    def __init__(self, config: GearUpdateConfig, model: "GearNeRFModel", datamanager, optimizer, last_step: int):
+        self.config = config
+        self.model = model
+        self.datamanager = datamanager
+        self.optimizer = optimizer
+        self.last_step = last_step
+        dataset = datamanager.train_dataset
+        pixels = float((dataset.cameras.width * dataset.cameras.height).sum())
+        self.iterations_per_epoch = max(1, math.ceil(pixels / datamanager.config.train_num_rays_per_batch))
+        self.interval = max(1, round(config.epochs_between_updates * self.iterations_per_epoch))
+        self.finished = not config.enabled
+        self.num_updates = 0
+        self.rng = np.random.default_rng(0)
+        if config.mask_source == "sam" and getattr(datamanager, "feature_cache", None) is None:
+            raise ValueError("gear updates with mask_source 'sam' need SAM features: enable them in the datamanager")
+
+    def __call__(self, step: int) -> None:
+        if self.finished or step == 0 or step % self.interval:
+            return
+        if self.last_step - step < self.config.epochs_after_updates * self.iterations_per_epoch:
+            self.finished = True
+            CONSOLE.log(f"Gear updates end at step {step}: L' epochs of training remain.")
+            return
+        self.update(step)
+
+    def update(self, step: int) -> Dict[str, float]:
+        """One gear-assignment update; returns the logged statistics."""
+        from nerfstudio.utils import writer  # imported here: importing it before nerfstudio's configs is circular
+
+        config = self.config
+        count = len(self.datamanager.train_dataset)
+        views = self.rng.choice(count, size=min(config.views_per_update, count), replace=False)
+        maps = [self.loss_map(int(index)) for index in views]
+        variance = float(np.mean([float(m.loss.var()) for m in maps]))
+        stats = {"loss_map_variance": variance}
+        if variance < config.variance_threshold:
+            self.finished = True
+            CONSOLE.log(f"Gear updates end at step {step}: loss-map variance {variance:.3g} is below the threshold.")
+            writer.put_dict("gear_update", stats, step)
+            return stats
+
+        shifts = [self.upshift_mask(m) for m in maps]
+        masks = [mask for mask, _, _ in shifts]
+        points, times, weights, upshift = self.sample_points(maps, masks)
+        with torch.no_grad():
+            levels = self.model.field.gear_levels(points, times)
+        targets = level_targets(levels, upshift, self.model.config.num_gears)
+        steps = shift_gears(
+            self.model.field, self.optimizer, points, times, weights, upshift, targets, self.config.stay_weight,
+            self.config.margin, self.config.max_steps,
+        )
+        with torch.no_grad():
+            new_levels = self.model.field.gear_levels(points, times)
+        self.num_updates += 1
+
+        stats.update(
+            {
+                "upshift_mask_area": float(np.mean([float(mask.float().mean()) for mask in masks])),
+                "steps": float(steps),
+                "downshifted_fraction": float((new_levels < levels).float().mean()),
+            }
+        )
+        histogram = self.visible_gear_histogram(maps)
+        stats.update({f"gear_{g + 1}_fraction": float(f) for g, f in enumerate(histogram)})
+        writer.put_dict("gear_update", stats, step)
+        for k, (loss_map, shift) in enumerate(zip(maps, shifts)):
+            writer.put_image(f"gear_update/view_{k}", self.picture(loss_map, *shift), step)
+        CONSOLE.log(
+            f"Gear update {self.num_updates} at step {step}: loss-map variance {variance:.3g}, "
+            f"upshift area {stats['upshift_mask_area']:.2f}, gears "
+            + " ".join(f"{float(f):.2f}" for f in histogram)
+        )
+        return stats
+
+    @torch.no_grad()
+    def visible_gear_histogram(self, maps: List[LossMap]) -> Tensor:
+        """Fraction of the rendered pixels whose visible surface is at each gear level."""
+        levels = torch.cat(
+            [
+                self.model.field.gear_levels(m.surface, m.camera.times.reshape(1, 1).expand(len(m.surface), 1))
+                for m in maps
+            ]
+        )
+        counts = torch.bincount(levels, minlength=self.model.config.num_gears + 1)[1:].float()
+        return counts / counts.sum()
+
+    def loss_map(self, image_index: int) -> LossMap:
+        """Render a training view and its per-pixel loss L(r) = L_pho(r) + lambda L_SAM(r)."""
+        dataset = self.datamanager.train_dataset
+        camera = dataset.cameras[image_index : image_index + 1].to(self.model.device)
+        full_size = (int(camera.height[0, 0]), int(camera.width[0, 0]))
+        scale = min(1.0, self.config.loss_map_size / max(full_size))
+        camera.rescale_output_resolution(scale)
+        height, width = int(camera.height[0, 0]), int(camera.width[0, 0])
+        image = dataset.get_image_float32(image_index)[..., :3].permute(2, 0, 1)[None]
+        rgb = F.interpolate(image, size=(height, width), mode="area")[0].permute(1, 2, 0).to(self.model.device)
+
+        was_training = self.model.training
+        self.model.eval()
+        rays = camera.generate_rays(camera_indices=0, keep_shape=True)
+        outputs = self.model.get_outputs_for_camera_ray_bundle(rays)
+        self.model.train(was_training)
+        surface = (rays.origins + rays.directions * outputs["depth"]).reshape(-1, 3)
+        loss = (outputs["rgb"] - rgb).square().sum(-1)
+        rgb_loss = loss.clone()
+        if self.config.mask_source == "sam":
+            embedding = self.datamanager.train_embedding(image_index)
+            ys, xs = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+            # Loss-map pixels -> pixels of the embedded image (its size can differ from the camera's).
+            to_image = torch.tensor([embedding.image_size[1] / width, embedding.image_size[0] / height])
+            pixels = torch.stack([xs, ys], dim=-1).reshape(-1, 2) * to_image
+            features = torch.from_numpy(embedding.features)
+            target = sample_features(features, pixels, embedding.image_size).to(self.model.device)
+            sam_error = (outputs["sam"].reshape(-1, target.shape[-1]) - target).square().sum(-1)
+            loss = loss + self.config.sam_loss_weight * sam_error.reshape(height, width)
+        return LossMap(image_index, camera, rgb, loss, rgb_loss, surface)
+
+    def upshift_mask(self, loss_map: LossMap) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
+        """The upshift mask (h, w) of one view and its prompts (x, y), labels in loss-map pixels.
+
+        mask_source 'sam': the SAM decoder on the loss-map prompts and the ground-truth embedding;
+        'loss_threshold': the RGB loss map above its mean + k std, without prompts.
+        """
+        if self.config.mask_source == "loss_threshold":
+            values = loss_map.rgb_loss
+            return values > values.mean() + self.config.loss_threshold_std * values.std(), None, None
+        points, labels = patch_prompts(loss_map.loss, self.config.patch_size, self.config.top_k)
+        embedding = self.datamanager.train_embedding(loss_map.image_index)
+        height, width = loss_map.loss.shape
+        scale = np.array([embedding.image_size[1] / width, embedding.image_size[0] / height])
+        masks, _ = self.datamanager.sam_backend.decode(
+            embedding, points=points.numpy() * scale, labels=labels.numpy().astype(np.int64)
+        )
+        mask = torch.from_numpy(masks[0]).float()[None, None]
+        mask = F.interpolate(mask, size=(height, width), mode="area")[0, 0].to(self.model.device) > 0.5
+        return mask, points, labels
+
+    def sample_points(
+        self, maps: List[LossMap], masks: List[Tensor]
+    ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Points on rays inside (S_upshift) and outside (S_stay) the masks, with rendering weights."""
+        per_view = max(1, self.config.rays_per_set // len(maps))
+        sampler = UniformSampler(num_samples=self.model.config.num_samples)
+        points, times, weights, upshift = [], [], [], []
+        for loss_map, mask in zip(maps, masks):
+            for inside in (True, False):
+                pixels = torch.nonzero(mask == inside).float()  # (row, col)
+                if len(pixels) == 0:
+                    continue
+                chosen = pixels[torch.from_numpy(self.rng.permutation(len(pixels))[:per_view])]
+                bundle = loss_map.camera.generate_rays(camera_indices=0, coords=chosen + 0.5)
+                samples = sampler(self.model.collider(bundle))
+                positions = samples.frustums.get_positions()
+                with torch.no_grad():
+                    density = self.model.field(
+                        positions.reshape(-1, 3),
+                        samples.frustums.directions.reshape(-1, 3),
+                        samples.times.reshape(-1, 1),
+                    )["density"]
+                    w = samples.get_weights(density.reshape(*positions.shape[:-1], 1))[..., 0]
+                points.append(positions.reshape(-1, 3))
+                times.append(samples.times.reshape(-1, 1))
+                weights.append(w.reshape(-1))
+                upshift.append(torch.full((w.numel(),), inside, dtype=torch.bool, device=w.device))
+        return torch.cat(points), torch.cat(times), torch.cat(weights), torch.cat(upshift)
+
+    @staticmethod
+    def picture(loss_map: LossMap, mask: Tensor, points: Optional[Tensor], labels: Optional[Tensor]) -> Tensor:
+        """Loss map (turbo) with the prompts (red: positive, green: negative) and the upshift mask (red)
+        over the ground truth, side by side."""
+        loss = loss_map.loss / loss_map.loss.max().clamp(min=1e-12)
+        heat = colormaps.apply_colormap(loss[..., None], colormaps.ColormapOptions(colormap="turbo")).clone()
+        overlay = loss_map.rgb * 0.5 + mask[..., None].float() * torch.tensor([0.5, 0.0, 0.0], device=mask.device)
+        if points is not None:
+            height, width = mask.shape
+            for (x, y), label in zip(points.long().tolist(), labels.tolist()):
+                colour = torch.tensor([1.0, 0.0, 0.0] if label > 0 else [0.0, 1.0, 0.0], device=mask.device)
+                heat[max(0, y - 1) : min(height, y + 2), max(0, x - 1) : min(width, x + 2)] = colour
+        return torch.cat([heat, overlay], dim=1)

@@ -1,0 +1,105 @@
+"""The SAM interface every backend implements, and the embedding geometry they share.
+
+SAM resizes an image so that its longest side is 1024 px, pads it to 1024 x 1024 at the bottom/right
+and encodes it to a 256 x 64 x 64 embedding: cell (i, j) covers image pixels whose coordinates,
+scaled by `grid_size / max(H, W)`, fall in [j, j+1) x [i, i+1). Every backend uses this geometry
+(with its own grid size), so supervision (Eq 9), loss maps (Sec 4.3) and tracking (Sec 4.5) can move
+between pixels and embedding cells without knowing the backend.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, Dict, Optional, Tuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+
+@dataclass
+class Embedding:
+    """An image embedding: features (C, G, G) over the padded square of an image of image_size (H, W)."""
+
+    features: np.ndarray
+    image_size: Tuple[int, int]
+
+    @property
+    def grid_size(self) -> int:
+        return int(self.features.shape[-1])
+
+
+def cells_per_pixel(image_size: Tuple[int, int], grid_size: int) -> float:
+    """Scale from image pixel coordinates to embedding cell coordinates."""
+    return grid_size / max(image_size)
+
+
+def valid_grid(image_size: Tuple[int, int], grid_size: int) -> Tuple[int, int]:
+    """Rows and columns of the grid that cover the image (the rest covers SAM's padding)."""
+    scale = cells_per_pixel(image_size, grid_size)
+    return min(grid_size, int(np.ceil(image_size[0] * scale))), min(grid_size, int(np.ceil(image_size[1] * scale)))
+
+
+def cell_centres(image_size: Tuple[int, int], grid_size: int) -> Tensor:
+    """Image pixel coordinates (x, y) of the centres of the valid cells, shape (rows, cols, 2)."""
+    rows, cols = valid_grid(image_size, grid_size)
+    scale = cells_per_pixel(image_size, grid_size)
+    ys, xs = torch.meshgrid(torch.arange(rows) + 0.5, torch.arange(cols) + 0.5, indexing="ij")
+    return torch.stack([xs, ys], dim=-1) / scale
+
+
+def sample_features(features: Tensor, pixels: Tensor, image_size: Tuple[int, int]) -> Tensor:
+    """Bilinear features (N, C) at image pixel coordinates (N, 2) = (x, y) from a (C, G, G) grid."""
+    grid_size = features.shape[-1]
+    cells = pixels * cells_per_pixel(image_size, grid_size)
+    normalised = cells / grid_size * 2.0 - 1.0  # align_corners=False: cell centres at (k + 0.5)
+    sampled = torch.nn.functional.grid_sample(
+        features[None].float(), normalised[None, None], mode="bilinear", padding_mode="border", align_corners=False
+    )
+    return sampled[0, :, 0].T
+
+
+class SamBackend(ABC):
+    """Encoder and prompt decoder of SAM or a stand-in.
+
+    Attributes:
+        name: backend name, written into the feature cache header.
+        settings: everything that changes the encoder output (model files, sizes); a change
+            invalidates cached features.
+        embedding_dim: C of the embeddings.
+        grid_size: G of the embeddings.
+    """
+
+    name: str
+    embedding_dim: int
+    grid_size: int
+
+    @property
+    @abstractmethod
+    def settings(self) -> Dict[str, Any]:
+        """Settings that determine the encoder's output."""
+
+    @abstractmethod
+    def encode(self, image: np.ndarray) -> Embedding:
+        """Embed an RGB uint8 image (H, W, 3)."""
+
+    @abstractmethod
+    def decode(
+        self,
+        embedding: Embedding,
+        points: Optional[np.ndarray] = None,
+        labels: Optional[np.ndarray] = None,
+        box: Optional[np.ndarray] = None,
+    ) -> Tuple[np.ndarray, np.ndarray]:
+        """Masks for prompts on an embedding.
+
+        Args:
+            embedding: from `encode`, or rendered features arranged on the same grid.
+            points: (N, 2) pixel coordinates (x, y) in the embedded image.
+            labels: (N,) 1 for positive, 0 for negative points.
+            box: (4,) x0, y0, x1, y1 in pixels.
+
+        Returns:
+            masks (K, H, W) bool at the embedded image's size, scores (K,), best first.
+        """

@@ -1,0 +1,208 @@
+"""SAM feature cache and the SAM-aware datamanager (targets of Eq 9), with the real built-in backend."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+from PIL import Image
+
+from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
+from gear_nerfstudio.gear_datamanager import GearDataManagerConfig
+from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
+from gear_nerfstudio.sam.interface import cell_centres, sample_features
+from gear_nerfstudio.sam_features import SamFeatureCache, read_header
+from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+
+BIN = Path(sys.executable).parent
+SPEC = SyntheticSpec(dataset="n3d", width=24, height=18, frames=2, cameras=3)  # 4 training, 2 held-out images
+
+
+class CountingBackend(BuiltinSamBackend):
+    """The built-in backend, counting (and keeping) its encoder outputs; `variant` changes its settings only."""
+
+    def __init__(self, variant: int = 0):
+        super().__init__()
+        self.variant = variant
+        self.outputs = []
+
+    @property
+    def settings(self):
+        return {**super().settings, "variant": self.variant}
+
+    @property
+    def calls(self) -> int:
+        return len(self.outputs)
+
+    def encode(self, image):
+        self.outputs.append(super().encode(image))
+        return self.outputs[-1]
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("images")
+    rng = np.random.default_rng(0)
+    paths = []
+    for i, size in enumerate([(18, 24), (30, 20)]):  # landscape and portrait
+        paths.append(folder / f"image{i}.png")
+        Image.fromarray(rng.integers(0, 256, (*size, 3), dtype=np.uint8)).save(paths[-1])
+    return paths
+
+
+@pytest.fixture(scope="module")
+def warm(images, tmp_path_factory):
+    """A cache directory holding the features of `images`, and the backend that computed them."""
+    folder = tmp_path_factory.mktemp("sam-cache")
+    backend = CountingBackend()
+    SamFeatureCache(backend, folder, images).precompute()
+    return folder, backend
+
+
+def test_cache_computes_once_in_float16(images, warm):
+    folder, first = warm
+    assert first.calls == len(images)
+    again = CountingBackend()  # a second set-up, as a new training run does
+    cache = SamFeatureCache(again, folder, images)
+    assert cache.precompute() == 0 and again.calls == 0
+
+    file = cache.path_for(images[0])
+    header, offset = read_header(file)
+    assert header["dtype"] == "float16" and header["backend"] == "builtin"
+    assert file.stat().st_size == offset + 64 * 64 * 256 * 2
+    for path, output in zip(images, first.outputs):
+        embedding = cache.embedding(path)
+        assert embedding.image_size == output.image_size == Image.open(path).size[::-1]
+        np.testing.assert_array_equal(embedding.features, output.features.astype(np.float16).astype(np.float32))
+    assert again.calls == 0
+
+
+def test_mismatched_header_recomputes(images, warm, tmp_path):
+    shutil.copytree(warm[0], tmp_path, dirs_exist_ok=True)
+    other = CountingBackend(variant=1)  # other settings: recomputed (into other files)
+    assert SamFeatureCache(other, tmp_path, images[:1]).precompute() == 1 and other.calls == 1
+
+    backend = CountingBackend()
+    cache = SamFeatureCache(backend, tmp_path, images)
+    # A file whose header names other settings (stale, or foreign at that name) is recomputed...
+    file = cache.path_for(images[0])
+    file.write_bytes(file.read_bytes().replace(b'"variant": 0', b'"variant": 7', 1))
+    # ... and so is one whose source image changed since it was encoded.
+    stat = images[1].stat()
+    os.utime(images[1], ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    try:
+        assert cache.precompute() == 2 and backend.calls == 2
+        assert cache.precompute() == 0
+    finally:
+        os.utime(images[1], ns=(stat.st_atime_ns, stat.st_mtime_ns))
+        cache.precompute()  # leave the shared warm cache matching the restored file for later tests
+
+
+def test_bilinear_lookup_matches_the_embedding(images, warm):
+    cache = SamFeatureCache(CountingBackend(), warm[0], images)
+    for index, path in enumerate(images):
+        embedding = cache.embedding(path)
+        features = torch.from_numpy(embedding.features)
+        centres = cell_centres(embedding.image_size, embedding.grid_size)
+        rows, cols = centres.shape[:2]
+        at_centres = cache.features_at(torch.full((rows * cols,), index), centres.reshape(-1, 2))
+        torch.testing.assert_close(at_centres, features[:, :rows, :cols].reshape(256, -1).T)
+        height, width = embedding.image_size
+        pixels = torch.rand(300, 2, generator=torch.Generator().manual_seed(index)) * torch.tensor([width, height])
+        torch.testing.assert_close(
+            cache.features_at(torch.full((300,), index), pixels),
+            sample_features(features, pixels, embedding.image_size),
+            atol=1e-5,
+            rtol=1e-5,
+        )
+    assert cache.backend.calls == 0
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sam-scene")
+    return root, write_synthetic_scene(root / "scene", SPEC)
+
+
+def datamanager_config(root: Path, data: Path, **kwargs) -> GearDataManagerConfig:
+    return GearDataManagerConfig(
+        dataparser=Neural3DVideoDataParserConfig(data=data, cache_dir=root / "frames"),
+        sam_cache_dir=kwargs.pop("sam_cache_dir", root / "sam"),
+        train_num_rays_per_batch=256,
+        eval_num_rays_per_batch=128,
+        train_num_images_to_sample_from=3,  # a subset of the 4 training images, resampled
+        train_num_times_to_repeat_images=1,
+        **kwargs,
+    )
+
+
+@pytest.fixture(scope="module")
+def datamanager(scene):
+    root, data = scene
+    return datamanager_config(root, data).setup(device="cpu", test_mode="val")
+
+
+def test_batches_carry_the_cached_features_at_pixel_centres(datamanager):
+    for step in range(3):
+        _, batch = datamanager.next_train(step)
+        indices, features = batch["indices"], batch["sam_features"]
+        assert features.shape == (256, datamanager.sam_backend.embedding_dim) and features.dtype == torch.float32
+        for image_index in indices[:, 0].unique().tolist():
+            rows = indices[:, 0] == image_index
+            embedding = datamanager.train_embedding(image_index)
+            pixels = indices[rows][:, [2, 1]].float() + 0.5
+            expected = sample_features(torch.from_numpy(embedding.features), pixels, embedding.image_size)
+            torch.testing.assert_close(features[rows], expected, atol=1e-6, rtol=1e-5)
+    _, batch = datamanager.next_eval(0)
+    assert batch["sam_features"].shape == (128, 256)
+
+
+def test_second_setup_and_ablation_never_run_the_encoder(scene, datamanager, monkeypatch):
+    calls = []
+    encode = BuiltinSamBackend.encode
+    monkeypatch.setattr(BuiltinSamBackend, "encode", lambda self, image: calls.append(1) or encode(self, image))
+    root, data = scene
+    again = datamanager_config(root, data).setup(device="cpu", test_mode="val")
+    assert "sam_features" in again.next_train(0)[1] and not calls
+
+    ablation = datamanager_config(root, data, use_sam_features=False, sam_cache_dir=root / "unused")
+    manager = ablation.setup(device="cpu", test_mode="val")
+    assert "sam_features" not in manager.next_train(0)[1] and "sam_features" not in manager.next_eval(0)[1]
+    assert not calls and not (root / "unused").exists()
+
+
+def test_sam_dim_mismatch_is_a_clear_error(datamanager):
+    model = SimpleNamespace(config=SimpleNamespace(sam_dim=64))
+    attributes = TrainingCallbackAttributes(None, None, SimpleNamespace(model=model), None)
+    with pytest.raises(ValueError, match="sam_dim is 64 but the SAM backend 'builtin' gives 256"):
+        datamanager.get_training_callbacks(attributes)
+
+
+def test_ns_train_optimises_the_sam_loss(scene, datamanager, tmp_path):
+    """Five iterations of the CPU preset log L_SAM (Eq 9); the features come from the warm cache."""
+    root, data = scene
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "XDG_CACHE_HOME": str(tmp_path)}
+    command = [
+        str(BIN / "ns-train"), "gear-nerf-small", "--output-dir", str(tmp_path / "runs"), "--experiment-name", "sam",
+        "--timestamp", "run", "--max-num-iterations", "5", "--machine.device-type", "cpu", "--vis", "tensorboard",
+        "--steps-per-eval-all-images", "1000", "--pipeline.datamanager.sam-cache-dir", str(root / "sam"),
+        "neural-3d-video-data", "--data", str(data), "--cache-dir", str(root / "frames"),
+    ]  # fmt: skip
+    cached = {p: p.stat().st_mtime_ns for p in (root / "sam").rglob("*")}
+    result = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=300, env=env)
+    assert result.returncode == 0, f"{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    assert {p: p.stat().st_mtime_ns for p in (root / "sam").rglob("*")} == cached  # nothing encoded again
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "runs" / "sam" / "gear-nerf-small" / "run")).Reload()
+    sam_loss = events.Scalars("Train Loss Dict/sam_loss")
+    assert sam_loss and all(np.isfinite(e.value) and e.value > 0 for e in sam_loss)

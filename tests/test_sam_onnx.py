@@ -1,0 +1,279 @@
+"""The ONNX SAM backend against segment-anything's own SamPredictor, on a tiny randomly initialised SAM
+exported with the package's own model classes and ONNX wrapper (no weights can be downloaded)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gear_nerfstudio.sam.config import SamConfig
+from gear_nerfstudio.sam.interface import Embedding
+from gear_nerfstudio.sam.onnx_backend import (
+    OnnxSamBackend,
+    SamModelError,
+    preprocess_image,
+    preprocess_shape,
+    prompt_inputs,
+    transform_coords,
+)
+
+pytest.importorskip("segment_anything")
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnx")  # torch.onnx.export needs it
+
+from segment_anything import SamPredictor  # noqa: E402
+from segment_anything.modeling import ImageEncoderViT, MaskDecoder, PromptEncoder, Sam, TwoWayTransformer  # noqa: E402
+from segment_anything.utils.onnx import SamOnnxModel  # noqa: E402
+from segment_anything.utils.transforms import ResizeLongestSide  # noqa: E402
+
+# Exporting segment-anything's modules warns about traced constants, the legacy exporter and indexing.
+pytestmark = pytest.mark.filterwarnings(
+    "ignore::torch.jit.TracerWarning", "ignore:.*legacy TorchScript-based ONNX", "ignore:Exporting aten..index operator"
+)
+
+IMAGE_SIZES = [(48, 40), (30, 40)]
+DECODER_INPUT_NAMES = [
+    "image_embeddings",
+    "point_coords",
+    "point_labels",
+    "mask_input",
+    "has_mask_input",
+    "orig_im_size",
+]
+
+
+def tiny_sam(grid: int = 64) -> Sam:
+    """A SAM with SAM's structure (ViT encoder with windowed and global attention, prompt encoder,
+    two-way transformer decoder) but a few thousand parameters, randomly initialised with a fixed seed."""
+    torch.manual_seed(0)
+    image_size = grid * 16
+    sam = Sam(
+        image_encoder=ImageEncoderViT(
+            img_size=image_size,
+            patch_size=16,
+            embed_dim=32,
+            depth=2,
+            num_heads=2,
+            mlp_ratio=2.0,
+            out_chans=256,
+            qkv_bias=True,
+            norm_layer=partial(torch.nn.LayerNorm, eps=1e-6),
+            use_rel_pos=True,
+            window_size=8,
+            global_attn_indexes=(1,),
+        ),
+        prompt_encoder=PromptEncoder(
+            embed_dim=256,
+            image_embedding_size=(grid, grid),
+            input_image_size=(image_size, image_size),
+            mask_in_chans=16,
+        ),
+        mask_decoder=MaskDecoder(
+            num_multimask_outputs=3,
+            transformer=TwoWayTransformer(depth=1, embedding_dim=256, mlp_dim=32, num_heads=2),
+            transformer_dim=256,
+            iou_head_depth=2,
+            iou_head_hidden_dim=32,
+        ),
+    )
+    with torch.no_grad():  # parameters that SAM initialises to zero (positions) get random values too
+        for parameter in sam.parameters():
+            if not parameter.any():
+                parameter.normal_(0.0, 0.05)
+    return sam.eval()
+
+
+def export_encoder(encoder: torch.nn.Module, path: Path) -> Path:
+    """An image encoder taking the pre-processed (1, 3, 1024, 1024) image, as the backend expects."""
+    image = torch.randn(1, 3, 1024, 1024)
+    export = dict(dynamo=False, opset_version=17, input_names=["image"], output_names=["image_embeddings"])
+    torch.onnx.export(encoder, (image,), str(path), **export)
+    return path
+
+
+def export_decoder(sam: Sam, path: Path, input_names=DECODER_INPUT_NAMES, return_single_mask: bool = False) -> Path:
+    """As segment-anything's scripts/export_onnx_model.py does (dynamic number of points)."""
+    grid = sam.prompt_encoder.image_embedding_size
+    dummy = (
+        torch.randn(1, 256, *grid),
+        torch.randint(0, 1024, (1, 5, 2), dtype=torch.float),
+        torch.randint(0, 4, (1, 5), dtype=torch.float),
+        torch.randn(1, 1, 4 * grid[0], 4 * grid[1]),
+        torch.tensor([1.0]),
+        torch.tensor([1500.0, 2250.0]),
+    )
+    export = dict(
+        dynamo=False,
+        opset_version=17,
+        do_constant_folding=True,
+        input_names=list(input_names),
+        output_names=["masks", "iou_predictions", "low_res_masks"],
+        dynamic_axes={input_names[1]: {1: "num_points"}, input_names[2]: {1: "num_points"}},
+    )
+    torch.onnx.export(SamOnnxModel(sam, return_single_mask=return_single_mask), dummy, str(path), **export)
+    return path
+
+
+@pytest.fixture(scope="session")
+def sam_model() -> Sam:
+    return tiny_sam()
+
+
+@pytest.fixture(scope="session")
+def onnx_files(sam_model, tmp_path_factory) -> dict:
+    """The tiny SAM exported once per session, plus broken variants for the error cases."""
+    folder = tmp_path_factory.mktemp("sam-onnx")
+    garbage = folder / "garbage.onnx"
+    garbage.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    renamed = ["embeddings", *DECODER_INPUT_NAMES[1:]]
+    return {
+        "encoder": export_encoder(sam_model.image_encoder, folder / "encoder.onnx"),
+        "decoder": export_decoder(sam_model, folder / "decoder.onnx"),
+        "decoder_single": export_decoder(sam_model, folder / "decoder_single.onnx", return_single_mask=True),
+        "decoder_renamed": export_decoder(sam_model, folder / "decoder_renamed.onnx", input_names=renamed),
+        "decoder_grid32": export_decoder(tiny_sam(grid=32), folder / "decoder_grid32.onnx"),
+        "encoder_grid32": export_encoder(torch.nn.Conv2d(3, 256, 32, stride=32), folder / "encoder_grid32.onnx"),
+        "garbage": garbage,
+    }
+
+
+@pytest.fixture(scope="session")
+def backend(onnx_files) -> OnnxSamBackend:
+    return OnnxSamBackend(onnx_files["encoder"], onnx_files["decoder"])
+
+
+def _image(size) -> np.ndarray:
+    """A smooth non-square test image with a bright disc."""
+    height, width = size
+    ys, xs = np.mgrid[0:height, 0:width]
+    disc = (xs - 0.6 * width) ** 2 + (ys - 0.4 * height) ** 2 < (0.25 * min(size)) ** 2
+    rgb = np.stack([xs / width, ys / height, 0.5 + 0.5 * disc], axis=-1) * 255
+    return rgb.round().astype(np.uint8)
+
+
+def test_preprocessing_matches_segment_anything(sam_model):
+    transform = ResizeLongestSide(1024)
+    for size in IMAGE_SIZES + [(1088, 2048), (1014, 1352), (333, 500)]:
+        assert preprocess_shape(*size) == transform.get_preprocess_shape(size[0], size[1], 1024)
+        coords = np.array([[0.0, 0.0], [size[1] - 1.0, size[0] - 1.0], [3.25, 7.5]])
+        np.testing.assert_allclose(transform_coords(coords, size), transform.apply_coords(coords, size))
+    for size in IMAGE_SIZES:
+        image = _image(size)
+        resized = torch.as_tensor(transform.apply_image(image)).permute(2, 0, 1)[None]
+        expected = sam_model.preprocess(resized.float()).numpy()
+        np.testing.assert_allclose(preprocess_image(image), expected, atol=1e-5)
+
+
+def test_prompt_inputs_follow_the_onnx_example():
+    size = (48, 40)
+    coords, labels = prompt_inputs(np.array([[10.0, 20.0]]), np.array([1]), None, size)
+    np.testing.assert_allclose(coords[0], [transform_coords([10.0, 20.0], size), [0.0, 0.0]], rtol=1e-6)
+    np.testing.assert_array_equal(labels[0], [1.0, -1.0])
+    coords, labels = prompt_inputs(np.array([[10.0, 20.0]]), np.array([0]), np.array([1.0, 2.0, 30.0, 40.0]), size)
+    np.testing.assert_allclose(coords[0], transform_coords([[10.0, 20.0], [1.0, 2.0], [30.0, 40.0]], size), rtol=1e-6)
+    np.testing.assert_array_equal(labels[0], [0.0, 2.0, 3.0])
+    assert coords.dtype == np.float32 and labels.dtype == np.float32
+    with pytest.raises(ValueError):
+        prompt_inputs(None, None, None, size)
+
+
+@pytest.mark.parametrize("size", IMAGE_SIZES)
+def test_onnx_backend_matches_sam_predictor(backend, sam_model, size):
+    image = _image(size)
+    predictor = SamPredictor(sam_model)
+    predictor.set_image(image)
+    embedding = backend.encode(image)
+    assert embedding.features.shape == (256, 64, 64) and embedding.image_size == size
+    np.testing.assert_allclose(embedding.features, predictor.features[0].numpy(), atol=1e-4, rtol=1e-4)
+
+    height, width = size
+    click, corner = np.array([[0.6 * width, 0.4 * height]]), np.array([[5.0, 6.0]])
+    box = np.array([0.3 * width, 0.1 * height, 0.9 * width, 0.7 * height])
+    cases = [  # points, labels, box, multimask_output as SAM recommends (one click is ambiguous)
+        (click, np.array([1]), None, True),
+        (np.concatenate([corner, click]), np.array([0, 1]), None, False),
+        (None, None, box, False),
+        (click, np.array([1]), box, False),
+    ]
+    for points, labels, prompt_box, multimask in cases:
+        masks, scores = backend.decode(embedding, points, labels, prompt_box)
+        expected_masks, expected_scores, _ = predictor.predict(points, labels, prompt_box, multimask_output=multimask)
+        assert masks.dtype == bool and masks.shape[1:] == size
+        if multimask:  # the three multimask outputs, by predicted IoU
+            order = np.argsort(-expected_scores, kind="stable")
+            expected_masks, expected_scores = expected_masks[order], expected_scores[order]
+            assert masks.shape[0] == 3
+        else:  # SAM's single-mask output comes first
+            assert masks.shape[0] == 4
+        np.testing.assert_allclose(scores[: len(expected_scores)], expected_scores, atol=1e-5)
+        agreement = (masks[: len(expected_masks)] == expected_masks).mean()
+        assert agreement > 0.999, (points, labels, prompt_box, agreement)
+        assert 0.05 < expected_masks.mean() < 0.95  # the tiny model's masks are not trivial
+
+
+def test_single_mask_export(onnx_files, backend):
+    single = OnnxSamBackend(onnx_files["encoder"], onnx_files["decoder_single"])
+    embedding = backend.encode(_image((48, 40)))
+    masks, scores = single.decode(embedding, np.array([[20.0, 20.0]]), np.array([1]))
+    assert masks.shape == (1, 48, 40) and scores.shape == (1,)
+
+
+def test_settings_name_both_files(backend, onnx_files):
+    settings = backend.settings
+    assert backend.name == "onnx" and backend.embedding_dim == 256 and backend.grid_size == 64
+    for role in ("encoder", "decoder"):
+        assert settings[role]["path"] == str(onnx_files[role].resolve())
+        assert settings[role]["size"] == onnx_files[role].stat().st_size
+        assert settings[role]["mtime_ns"] == onnx_files[role].stat().st_mtime_ns
+
+
+def test_config_builds_backends(onnx_files):
+    config = SamConfig(backend="onnx", encoder=onnx_files["encoder"], decoder=onnx_files["decoder"])
+    assert isinstance(config.setup(), OnnxSamBackend)
+    with pytest.raises(SamModelError, match="encoder"):
+        SamConfig(backend="onnx", decoder=onnx_files["decoder"]).setup()
+    assert SamConfig().setup().name == "builtin"
+
+
+@pytest.mark.parametrize(
+    "encoder, decoder, message",
+    [
+        ("missing", "decoder", "does not exist"),
+        ("encoder", "missing", "does not exist"),
+        ("folder", "decoder", "is not a file"),
+        ("garbage", "decoder", "not a readable ONNX model"),
+        ("encoder", "garbage", "not a readable ONNX model"),
+        ("encoder", "decoder_renamed", "missing \\['image_embeddings'\\]"),
+        ("encoder", "decoder_grid32", "'image_embeddings'"),
+        ("encoder_grid32", "decoder", "output 'image_embeddings' has shape"),
+        ("decoder", "encoder", "expected one input"),
+        ("encoder", "encoder", "not the official segment-anything ONNX decoder"),
+    ],
+)
+def test_bad_model_files_fail_clearly(onnx_files, tmp_path, encoder, decoder, message):
+    files = {**onnx_files, "missing": tmp_path / "nowhere.onnx", "folder": tmp_path}
+    with pytest.raises(SamModelError, match=message) as error:
+        OnnxSamBackend(files[encoder], files[decoder])
+    assert isinstance(error.value, ValueError)
+    bad = files[encoder] if encoder != "encoder" else files[decoder]
+    assert str(bad) in str(error.value)
+
+
+def test_onnxruntime_is_imported_only_when_needed():
+    """nerfstudio imports the plugin on every command: the SAM modules must not pull onnxruntime in."""
+    code = (
+        "import sys, gear_nerfstudio.sam.config, gear_nerfstudio.sam.onnx_backend, gear_nerfstudio.sam.builtin_backend;"
+        "assert 'onnxruntime' not in sys.modules and 'segment_anything' not in sys.modules"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_decode_rejects_bad_embeddings(backend):
+    with pytest.raises(ValueError, match="shape"):
+        backend.decode(Embedding(np.zeros((256, 32, 32), np.float32), (48, 40)), np.array([[1.0, 1.0]]), np.array([1]))
