@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Type
 
-import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
