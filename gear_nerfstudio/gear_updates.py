@@ -16,6 +16,13 @@ Changes from the paper, to keep p = ceil(g) (Eq 5) away from its jumps and the u
   the pixel sees rather than on the empty space in front of them;
 - Eq 11's single gradient step is repeated (at most `max_steps`) until the sampled points reach their
   target levels, since one small step rarely moves g across a level boundary.
+
+Addition to the paper, the motion gate (`motion_threshold`; 0 gives the paper's behaviour): the rigs are
+fixed, so a surface that moves changes the ground-truth pixels of its camera over time. A patch counts
+as moving when its mean absolute RGB change to other frames of the same camera reaches the threshold;
+only moving patches give positive prompts, and the upshift mask is cut to moving patches. High loss on
+static texture (fine detail not yet fitted) thus never upshifts, and neither does a static scene: gear 1
+already models everything that does not change in time, and higher gears there would only cost time.
 """
 
 from __future__ import annotations
@@ -74,23 +81,58 @@ class GearUpdateConfig:
     """Points are pulled this far inside the interval of their target level."""
     max_steps: int = 300
     """Gradient steps on the gear function per update (Eq 11, repeated until the targets are met)."""
+    motion_threshold: float = 0.03
+    """Mean absolute RGB change over time (patch average, in [0, 1]) for a patch to count as moving;
+    0 turns the motion gate off (the paper's behaviour)."""
+    motion_frames: int = 8
+    """Other frames of the same camera compared with the view's frame (spread over the video)."""
 
 
-def patch_prompts(loss_map: Tensor, patch_size: int, top_k: int) -> Tuple[Tensor, Tensor]:
-    """Centres (x, y) of the top-k highest (label 1) and lowest (label 0) average-loss patches."""
+def patch_size_for(shape: Tuple[int, int], patch_size: int) -> int:
+    """Patch side used on a loss map of this (h, w): at most the map's shorter side."""
+    return max(1, min(patch_size, *shape))
+
+
+def patch_means(values: Tensor, size: int) -> Tensor:
+    """Average of a (h, w) map over size x size patches (the last row / column may be partial)."""
+    return F.avg_pool2d(values[None, None], size, stride=size, ceil_mode=True)[0, 0]
+
+
+def patch_prompts(
+    loss_map: Tensor, patch_size: int, top_k: int, moving: Optional[Tensor] = None
+) -> Tuple[Tensor, Tensor]:
+    """Centres (x, y) of the top-k highest (label 1) and lowest (label 0) average-loss patches.
+
+    moving: (rows, cols) bool per patch; only moving patches can give positive prompts (fewer than k
+    positives, or none, when fewer patches move).
+    """
     height, width = loss_map.shape
-    size = max(1, min(patch_size, height, width))
-    pooled = F.avg_pool2d(loss_map[None, None], size, stride=size, ceil_mode=True)[0, 0]
+    size = patch_size_for((height, width), patch_size)
+    pooled = patch_means(loss_map, size)
     k = min(top_k, pooled.numel() // 2)
     flat = pooled.flatten()
-    high = torch.topk(flat, k).indices
+    candidates = flat if moving is None else torch.where(moving.flatten(), flat, -torch.inf)
+    num_high = min(k, int(torch.isfinite(candidates).sum()))
+    high = torch.topk(candidates, num_high).indices
     low = torch.topk(-flat, k).indices
     index = torch.cat([high, low])
     rows, cols = index // pooled.shape[1], index % pooled.shape[1]
     centres_x = torch.clamp((cols.float() + 0.5) * size, max=width - 0.5)
     centres_y = torch.clamp((rows.float() + 0.5) * size, max=height - 0.5)
-    labels = torch.cat([torch.ones(k), torch.zeros(k)])
+    labels = torch.cat([torch.ones(num_high), torch.zeros(k)])
     return torch.stack([centres_x, centres_y], dim=-1), labels
+
+
+def moving_patches(change: Tensor, patch_size: int, threshold: float) -> Tensor:
+    """Patches (rows, cols) whose mean over-time change of the ground truth reaches the threshold."""
+    return patch_means(change, patch_size_for(tuple(change.shape), patch_size)) >= threshold
+
+
+def patches_to_pixels(patches: Tensor, shape: Tuple[int, int], patch_size: int) -> Tensor:
+    """Per-patch booleans (rows, cols) spread to the pixels (h, w) of the map they were pooled from."""
+    size = patch_size_for(shape, patch_size)
+    pixels = patches.repeat_interleave(size, dim=0).repeat_interleave(size, dim=1)
+    return pixels[: shape[0], : shape[1]]
 
 
 def level_targets(levels: Tensor, upshift: Tensor, num_gears: int) -> Tensor:
@@ -150,6 +192,7 @@ class LossMap:
     loss: Tensor  # (h, w) L(r)
     rgb_loss: Tensor  # (h, w) L_pho(r)
     surface: Tensor  # (h * w, 3) points at the rendered depth of each pixel
+    change: Tensor  # (h, w) ground-truth change over time (motion gate)
 
 
 class GearUpdater:
@@ -249,8 +292,7 @@ class GearUpdater:
         scale = min(1.0, self.config.loss_map_size / max(full_size))
         camera.rescale_output_resolution(scale)
         height, width = int(camera.height[0, 0]), int(camera.width[0, 0])
-        image = dataset.get_image_float32(image_index)[..., :3].permute(2, 0, 1)[None]
-        rgb = F.interpolate(image, size=(height, width), mode="area")[0].permute(1, 2, 0).to(self.model.device)
+        rgb = self.ground_truth(image_index, (height, width))
 
         was_training = self.model.training
         self.model.eval()
@@ -270,18 +312,45 @@ class GearUpdater:
             target = sample_features(features, pixels, embedding.image_size).to(self.model.device)
             sam_error = (outputs["sam"].reshape(-1, target.shape[-1]) - target).square().sum(-1)
             loss = loss + self.config.sam_loss_weight * sam_error.reshape(height, width)
-        return LossMap(image_index, camera, rgb, loss, rgb_loss, surface)
+        return LossMap(image_index, camera, rgb, loss, rgb_loss, surface, self.change(image_index, rgb))
+
+    def ground_truth(self, image_index: int, size: Tuple[int, int]) -> Tensor:
+        """Training image (h, w, 3) area-resampled to the loss-map size."""
+        image = self.datamanager.train_dataset.get_image_float32(image_index)[..., :3].permute(2, 0, 1)[None]
+        return F.interpolate(image, size=size, mode="area")[0].permute(1, 2, 0).to(self.model.device)
+
+    def change(self, image_index: int, rgb: Tensor) -> Tensor:
+        """Motion gate: per pixel, the largest mean absolute RGB difference between this view's frame and
+        up to `motion_frames` other frames of the same camera, spread over the video (0 with one frame)."""
+        metadata = self.datamanager.train_dataset.metadata
+        cameras, frames = metadata["camera_ids"], metadata["frame_ids"]
+        others = torch.nonzero((cameras == cameras[image_index]) & (frames != frames[image_index]))[:, 0]
+        change = torch.zeros(rgb.shape[:2], device=rgb.device)
+        if self.config.motion_threshold <= 0 or len(others) == 0:
+            return change
+        picks = np.unique(np.linspace(0, len(others) - 1, min(self.config.motion_frames, len(others))).round())
+        for index in others[torch.from_numpy(picks.astype(np.int64))].tolist():
+            other = self.ground_truth(int(index), tuple(rgb.shape[:2]))
+            change = torch.maximum(change, (rgb - other).abs().mean(-1))
+        return change
 
     def upshift_mask(self, loss_map: LossMap) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
         """The upshift mask (h, w) of one view and its prompts (x, y), labels in loss-map pixels.
 
         mask_source 'sam': the SAM decoder on the loss-map prompts and the ground-truth embedding;
-        'loss_threshold': the RGB loss map above its mean + k std, without prompts.
+        'loss_threshold': the RGB loss map above its mean + k std, without prompts. Either is cut to the
+        moving patches (motion gate); with none, the mask is empty and no prompts are made.
         """
-        if self.config.mask_source == "loss_threshold":
+        config = self.config
+        shape = tuple(loss_map.loss.shape)
+        moving = moving_patches(loss_map.change, config.patch_size, config.motion_threshold)
+        moving_pixels = patches_to_pixels(moving, shape, config.patch_size)
+        if config.mask_source == "loss_threshold":
             values = loss_map.rgb_loss
-            return values > values.mean() + self.config.loss_threshold_std * values.std(), None, None
-        points, labels = patch_prompts(loss_map.loss, self.config.patch_size, self.config.top_k)
+            return (values > values.mean() + config.loss_threshold_std * values.std()) & moving_pixels, None, None
+        if not bool(moving.any()):
+            return torch.zeros(shape, dtype=torch.bool, device=loss_map.loss.device), None, None
+        points, labels = patch_prompts(loss_map.loss, config.patch_size, config.top_k, moving)
         embedding = self.datamanager.train_embedding(loss_map.image_index)
         height, width = loss_map.loss.shape
         scale = np.array([embedding.image_size[1] / width, embedding.image_size[0] / height])
@@ -290,7 +359,7 @@ class GearUpdater:
         )
         mask = torch.from_numpy(masks[0]).float()[None, None]
         mask = F.interpolate(mask, size=(height, width), mode="area")[0, 0].to(self.model.device) > 0.5
-        return mask, points, labels
+        return mask & moving_pixels, points, labels
 
     def sample_points(
         self, maps: List[LossMap], masks: List[Tensor]

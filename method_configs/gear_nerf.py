@@ -19,6 +19,7 @@ from nerfstudio.plugins.types import MethodSpecification
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gear_datamanager import GearDataManagerConfig
 from gear_nerfstudio.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.gear_updates import GearUpdateConfig
 
 LEARNING_RATE = 0.02
 """Initial learning rate for all parameters (Sec 5.1)."""
@@ -70,7 +71,9 @@ def trainer_config(
 
 
 def small_model(num_gears: int) -> GearNeRFModelConfig:
-    """Planes and MLPs sized for a CPU."""
+    """Planes and MLPs sized for a CPU; gear updates every 2 epochs until 4 remain, so that a
+    2000-iteration preview of a small scene gets several updates (the paper's L = 3, L' = 10 would
+    leave none)."""
     return GearNeRFModelConfig(
         num_gears=num_gears,
         feature_dim=16,
@@ -81,6 +84,7 @@ def small_model(num_gears: int) -> GearNeRFModelConfig:
         sam_head_dim=16,
         num_samples=24,
         eval_num_rays_per_chunk=1024,
+        gear_updates=GearUpdateConfig(epochs_between_updates=2.0, epochs_after_updates=4.0),
     )
 
 

@@ -5,7 +5,14 @@ from __future__ import annotations
 import torch
 
 from gear_nerfstudio.gear_field import GearField
-from gear_nerfstudio.gear_updates import level_targets, patch_prompts, shift_gears, upshift_loss
+from gear_nerfstudio.gear_updates import (
+    level_targets,
+    moving_patches,
+    patch_prompts,
+    patches_to_pixels,
+    shift_gears,
+    upshift_loss,
+)
 
 
 def test_patch_prompts_pick_the_highest_and_lowest_patches():
@@ -52,3 +59,30 @@ def test_shift_gears_upshifts_the_masked_region_only():
         assert bool((new_levels[upshift] == expected).all())
         assert bool((new_levels[~upshift] == 1).all())
     assert all(p.grad is None for p in field.gear_function.parameters())
+
+
+def test_positive_prompts_come_only_from_moving_patches():
+    loss = torch.full((32, 48), 1.0)
+    loss[8:16, 24:32] = 5.0  # the worst patch, but static (texture not yet fitted)
+    loss[16:24, 0:8] = 3.0  # high loss where something moves
+    change = torch.zeros(32, 48)
+    change[16:24, 0:8] = 0.2
+    moving = moving_patches(change, patch_size=8, threshold=0.03)
+    points, labels = patch_prompts(loss, patch_size=8, top_k=3, moving=moving)
+    assert labels.tolist() == [1, 0, 0, 0]
+    assert points[0].tolist() == [4.0, 20.0]
+    # Nothing moves: no positive prompt at all.
+    _, labels = patch_prompts(loss, patch_size=8, top_k=3, moving=torch.zeros_like(moving))
+    assert labels.tolist() == [0, 0, 0]
+
+
+def test_moving_patches_average_the_change_and_spread_back_to_pixels():
+    change = torch.zeros(20, 20)
+    change[0:8, 0:8] = 0.05  # whole patch moves
+    change[8, 8] = 1.0  # one noisy pixel: mean over its 8 x 8 patch is 1/64 < 0.03
+    moving = moving_patches(change, patch_size=8, threshold=0.03)
+    assert moving.shape == (3, 3)
+    assert moving.tolist() == [[True, False, False], [False, False, False], [False, False, False]]
+    pixels = patches_to_pixels(moving, (20, 20), patch_size=8)
+    assert pixels.shape == (20, 20)
+    assert int(pixels.sum()) == 64 and bool(pixels[:8, :8].all())
