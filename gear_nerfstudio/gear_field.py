@@ -41,6 +41,21 @@ def gear_level(g: Float[Tensor, "*bs"], num_gears: int) -> Int[Tensor, "*bs"]:
     return torch.ceil(torch.nan_to_num(g, nan=1.0).clamp(1.0, float(num_gears))).long()
 
 
+MAX_LOG_DENSITY = 80.0
+"""Cap on log sigma: exp(80) ~ 5.5e34 is finite in float32 and bfloat16 (exp overflows past 88.7)."""
+
+
+def density_activation(raw: Tensor) -> Tensor:
+    """sigma = exp(raw - 1) (K-Planes' ``trunc_exp``) with log sigma capped at ``MAX_LOG_DENSITY``.
+
+    Eq 1 uses sigma only through alpha = 1 - exp(-sigma delta). An infinite sigma gives sigma delta = NaN on a
+    zero-length segment (delta = 0: near = far, a split of such a segment), and that NaN reaches the
+    transmittance of every later sample of the ray and the gradients. At the cap, any segment longer than
+    1e-33 is already opaque (alpha = 1 in float32), so no rendered value changes.
+    """
+    return trunc_exp((raw - 1.0).clamp(max=MAX_LOG_DENSITY))
+
+
 def temporal_resolutions(num_gears: int, num_frames: int) -> List[int]:
     """Sec 4.4: temporal resolution of each gear's space-time planes.
 
@@ -201,9 +216,10 @@ class GearField(nn.Module):
     concatenated before B, so B_j maps (M * num_resolutions) -> M (M -> M with one resolution).
     Each sample is evaluated only with the planes of its own gear p(x, t) (Eq 5-7).
 
-    Density is ``trunc_exp(raw - 1)`` (K-Planes); colour uses spherical harmonics of the view direction;
-    the SAM embedding (Sec 4.2) is predicted from f in ``sam_head_dim`` channels and lifted to ``sam_dim``
-    by a learned affine map after rendering (exact by linearity of Eq 8, see ``lift_sam``).
+    Density is ``trunc_exp(raw - 1)`` (K-Planes), kept finite by ``density_activation``; colour uses
+    spherical harmonics of the view direction; the SAM embedding (Sec 4.2) is predicted from f in
+    ``sam_head_dim`` channels and lifted to ``sam_dim`` by a learned affine map after rendering (exact by
+    linearity of Eq 8, see ``lift_sam``).
 
     Args:
         aabb: scene box, positions inside map to [-1, 1]^3.
@@ -253,6 +269,9 @@ class GearField(nn.Module):
             PlaneTriple(feature_dim, [(t_res, r) for r in resolutions], init_time_plane)
             for t_res in self.time_resolutions
         )
+        # Gears that have had a training sample: the others' planes get no gradient, no regulariser and so
+        # no optimizer step or optimizer state (a static scene stays in gear 1 and never pays for time).
+        self.register_buffer("used_gears", torch.zeros(num_gears, dtype=torch.bool))
         self.basis = nn.Linear(3 * feature_dim * len(resolutions), feature_dim, bias=False)
         self.gear_function = GearFunction(gear_feature_dim, gear_resolution, max(1, gear_time_resolution or num_frames))
 
@@ -303,7 +322,10 @@ class GearField(nn.Module):
     ) -> Float[Tensor, "N M"]:
         """Eq 6-7: f = sum_G m_G f^G, evaluating each sample only with the planes of its own gear."""
         order = torch.argsort(levels)
-        counts = torch.bincount(levels, minlength=self.num_gears + 1)[1 : self.num_gears + 1].tolist()
+        counts = torch.bincount(levels, minlength=self.num_gears + 1)[1 : self.num_gears + 1]
+        if self.training and torch.is_grad_enabled():
+            self.used_gears |= counts > 0
+        counts = counts.tolist()
         chunks = []
         start = 0
         for gear, count in enumerate(counts, start=1):
@@ -334,7 +356,7 @@ class GearField(nn.Module):
         features = self.gear_features(x, t, levels)
 
         hidden = self.density_net(features)
-        density = torch.where(inside[:, None], trunc_exp(hidden[:, :1] - 1.0), torch.zeros_like(hidden[:, :1]))
+        density = torch.where(inside[:, None], density_activation(hidden[:, :1]), torch.zeros_like(hidden[:, :1]))
         encoded_directions = self.direction_encoding(F.normalize(directions, dim=-1))
         rgb = self.color_net(torch.cat([encoded_directions, hidden[:, 1:]], dim=-1))
         return {"density": density, "rgb": rgb, "sam": self.sam_net(features), "gear_level": levels}
@@ -352,14 +374,26 @@ class GearField(nn.Module):
         gear_ids = {id(p) for p in self.gear_function.parameters()}
         return [p for p in self.parameters() if id(p) not in gear_ids]
 
+    def used_time_planes(self) -> List[Tensor]:
+        """Space-time planes k^G of the gears that have had a training sample."""
+        return [plane for gear, triple in enumerate(self.time_planes) if self.used_gears[gear] for plane in triple.planes]
+
+    def parameters_in_use(self) -> int:
+        """Number of parameters that training updates: everything but the planes of unused gears."""
+        unused = {
+            id(plane) for gear, triple in enumerate(self.time_planes) if not self.used_gears[gear] for plane in triple.planes
+        }
+        return sum(p.numel() for p in self.parameters() if id(p) not in unused)
+
     def regularisers(self) -> Dict[str, Tensor]:
-        """K-Planes regularisers on the radiance planes (the gear function is left alone)."""
+        """K-Planes regularisers on the radiance planes of the used gears (the gear function is left alone)."""
         space = list(self.space_planes.planes)
-        time = [plane for triple in self.time_planes for plane in triple.planes]
+        time = self.used_time_planes()
+        zero = space[0].new_zeros(())
         return {
             "plane_tv": plane_tv(space, time),
-            "l1_time_planes": l1_time_planes(time),
-            "time_smoothness": time_smoothness(time),
+            "l1_time_planes": l1_time_planes(time) if time else zero,
+            "time_smoothness": time_smoothness(time) if time else zero,
         }
 
 
@@ -398,7 +432,7 @@ class ProposalDensityField(nn.Module):
         t = broadcast_times(times, shape, positions).reshape(-1, 1)
         products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
         raw = self.decoder(products.transpose(0, 1).reshape(x.shape[0], -1))
-        density = torch.where(inside[:, None], trunc_exp(raw - 1.0), torch.zeros_like(raw))
+        density = torch.where(inside[:, None], density_activation(raw), torch.zeros_like(raw))
         return density.reshape(*shape, 1)
 
     def regularisers(self) -> Dict[str, Tensor]:

@@ -63,6 +63,9 @@ def split_ray_samples(
 
     Sub-segment j of c has start s + (e - s) * j / c and end s + (e - s) * (j + 1) / c, with the last end
     set to e: starts and ends are exact, consecutive sub-segments share their boundary bit for bit.
+    Deltas are clamped at 0: delta in Eq 1 is a length, but nerfstudio's stratified sampler returns
+    segments of about -5e-7 when near = far (rounding of x * far + (1 - x) * near), and a negative delta
+    makes alpha = 1 - exp(-sigma delta) negative, i.e. weights outside [0, 1].
     """
     num_rays, num_base = levels.shape
     device = levels.device
@@ -93,7 +96,7 @@ def split_ray_samples(
     split = dataclasses.replace(
         gathered,
         frustums=dataclasses.replace(gathered.frustums, starts=sub_start, ends=sub_end),
-        deltas=sub_end - sub_start,
+        deltas=(sub_end - sub_start).clamp(min=0.0),
         spacing_starts=None,
         spacing_ends=None,
         spacing_to_euclidean_fn=None,

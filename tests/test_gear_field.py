@@ -218,5 +218,56 @@ def test_regularisers_start_at_zero_for_time_planes_and_respond_to_changes():
     assert reg["l1_time_planes"] == 0 and reg["time_smoothness"] == 0 and reg["plane_tv"] > 0
     with torch.no_grad():
         field.time_planes[3].planes[0][:, :, 1::2] += 0.5  # zig-zag along t
+    unused = field.regularisers()  # gear 4 has had no sample yet: its planes are not regularised
+    assert unused["l1_time_planes"] == 0 and unused["time_smoothness"] == 0
+    field.used_gears[3] = True
     reg = field.regularisers()
     assert reg["l1_time_planes"] > 0 and reg["time_smoothness"] > 0
+
+
+def train_step(field: GearField, optimizer: torch.optim.Optimizer, positions, times) -> None:
+    optimizer.zero_grad(set_to_none=True)
+    directions = torch.nn.functional.normalize(torch.ones_like(positions), dim=-1)
+    outputs = field(positions, directions, times)
+    loss = outputs["density"].mean() + outputs["rgb"].mean() + sum(field.regularisers().values())
+    loss.backward()
+    optimizer.step()
+
+
+def test_unused_gears_cost_no_optimizer_step_until_a_region_shifts_up():
+    field = small_field()
+    field.train()
+    optimizer = torch.optim.Adam(field.radiance_parameters(), lr=0.01)
+    positions, times = random_inputs(400)
+    positions = positions.clamp(-1, 1)
+    before = [[plane.detach().clone() for plane in triple.planes] for triple in field.time_planes]
+    for _ in range(3):
+        train_step(field, optimizer, positions, times)
+    assert field.used_gears.tolist() == [True, False, False, False]
+    for gear, triple in enumerate(field.time_planes):
+        for plane, old in zip(triple.planes, before[gear]):
+            assert (plane not in optimizer.state) == (gear > 0)
+            assert torch.equal(plane, old) == (gear > 0)
+    in_use = field.parameters_in_use()
+    unused = sum(plane.numel() for triple in field.time_planes[1:] for plane in triple.planes)
+    assert in_use == sum(p.numel() for p in field.parameters()) - unused
+
+    set_gear_ramp(field, 0.0, 4.0)  # a region shifts up: g from 1 to 5 along x
+    train_step(field, optimizer, positions, times)
+    assert field.used_gears.tolist() == [True, True, True, True]
+    assert all(plane in optimizer.state for triple in field.time_planes for plane in triple.planes)
+    assert field.parameters_in_use() == sum(p.numel() for p in field.parameters())
+    # The record of used gears is part of the checkpoint.
+    restored = small_field()
+    restored.load_state_dict(field.state_dict())
+    assert restored.used_gears.tolist() == [True, True, True, True]
+
+
+def test_evaluation_does_not_mark_gears_as_used():
+    field = small_field()
+    set_gear_ramp(field, 0.0, 4.0)
+    positions, times = random_inputs(200)
+    field.eval()
+    with torch.no_grad():
+        field(positions.clamp(-1, 1), torch.nn.functional.normalize(positions, dim=-1), times)
+    assert not bool(field.used_gears.any())
