@@ -20,6 +20,8 @@ from jaxtyping import Float, Int
 from torch import Tensor
 from torch.nn import Parameter
 
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.cameras.rays import RayBundle, RaySamples
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.field_components.spatial_distortions import SceneContraction
@@ -38,6 +40,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from gear_nerfstudio.gear_field import GearField, ProposalDensityField
 from gear_nerfstudio.gear_updates import GearUpdateConfig, GearUpdater
 from gear_nerfstudio.split_sampler import SplitSampler
+from gear_nerfstudio.viewer_tracking import ViewerTracking
 
 
 @dataclass
@@ -125,6 +128,19 @@ class GearNeRFModelConfig(ModelConfig):
     """Gear-assignment updates during training (Sec 4.3)."""
 
 
+MIN_MSE = 1e-10
+"""Floor of the mean squared error in PSNR: a perfect prediction reports 100 dB instead of inf."""
+
+
+def psnr(prediction: Tensor, target: Tensor) -> Tensor:
+    """PSNR in dB for colours in [0, 1], -10 log10(MSE), with the MSE clamped at ``MIN_MSE``.
+
+    Without the floor an exact match (all-black or all-white frames, background pixels) gives log10(0),
+    i.e. inf, which poisons every mean over images that ns-eval and the logs take.
+    """
+    return -10.0 * torch.log10(torch.mean((prediction - target) ** 2).clamp(min=MIN_MSE))
+
+
 def lpips_weights_path() -> Path:
     """Where torchvision keeps the AlexNet weights that torchmetrics' LPIPS needs."""
     from torchvision.models import AlexNet_Weights
@@ -208,6 +224,7 @@ class GearNeRFModel(Model):
         self.renderer_depth = DepthRenderer(method="median")
         self.rgb_loss = MSELoss()
         self._lpips: Dict[str, Any] = {}
+        self.tracking = ViewerTracking(self)
 
     def gear_values(
         self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*bs 1"]]
@@ -237,7 +254,8 @@ class GearNeRFModel(Model):
         """Gear-assignment updates (Sec 4.3); proposal weight annealing and update schedule if used."""
         callbacks = []
         attributes = training_callback_attributes
-        if self.config.gear_updates.enabled and attributes.pipeline is not None and attributes.trainer is not None:
+        updates = self.config.gear_updates.enabled and self.config.num_gears > 1
+        if updates and attributes.pipeline is not None and attributes.trainer is not None:
             trainer = attributes.trainer
             updater = GearUpdater(
                 self.config.gear_updates,
@@ -315,11 +333,21 @@ class GearNeRFModel(Model):
                 )
         return outputs
 
+    @torch.no_grad()
+    def get_outputs_for_camera(self, camera: Cameras, obb_box: Optional[OrientedBox] = None) -> Dict[str, Tensor]:
+        """nerfstudio's full-image render, plus "tracked_mask" once an object was clicked in the viewer
+        (Sec 4.5, see `viewer_tracking`)."""
+        outputs = super().get_outputs_for_camera(camera, obb_box=obb_box)
+        tracked = self.tracking.overlay(camera, outputs["rgb"])
+        if tracked is not None:
+            outputs["tracked_mask"] = tracked
+        return outputs
+
     def get_metrics_dict(self, outputs: Dict[str, Any], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """PSNR of the batch and the mean number of samples per ray."""
         image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
         return {
-            "psnr": -10.0 * torch.log10(torch.mean((outputs["rgb"].detach() - image) ** 2)),
+            "psnr": psnr(outputs["rgb"].detach(), image),
             "samples_per_ray": outputs["num_samples"].mean(),
         }
 
@@ -384,7 +412,7 @@ class GearNeRFModel(Model):
         image_nchw = torch.moveaxis(image, -1, 0)[None]
         rgb_nchw = torch.moveaxis(rgb, -1, 0)[None]
         metrics_dict = {
-            "psnr": float(-10.0 * torch.log10(torch.mean((rgb - image) ** 2))),
+            "psnr": float(psnr(rgb, image)),
             "ssim": float(structural_similarity_index_measure(rgb_nchw, image_nchw, data_range=1.0)),
         }
         lpips = self.lpips()

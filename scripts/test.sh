@@ -3,4 +3,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+# The viewer test drives a real headless Chromium (Debian packages; nothing is downloaded at test time).
+{ command -v chromium && command -v chromedriver; } >/dev/null || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null)
 exec .venv/bin/python -m pytest -q tests "$@"

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -9,6 +12,7 @@ import pytest
 from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
 SHARED_REAL = REPO.parent / "shared" / "data" / "real"
 
 SPECS = {
@@ -41,3 +45,33 @@ def scene_dirs(synthetic_root) -> dict:
 @pytest.fixture()
 def cache_dir(tmp_path) -> Path:
     return tmp_path / "frame-cache"
+
+
+def ns(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Run a command of the virtual environment (ffmpeg for videos on PATH); fail with its output."""
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+    result = subprocess.run(
+        [str(BIN / args[0]), *args[1:]], capture_output=True, text=True, cwd=cwd, timeout=900, env=env
+    )
+    assert result.returncode == 0, f"{' '.join(args)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    return result
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """A gear-nerf-small run of 20 iterations on a tiny synthetic N3D scene (24 x 18, 3 frames, 5 cameras),
+    then resumed from its checkpoint for 10 more: (root, scene, first run folder, resumed run folder)."""
+    root = tmp_path_factory.mktemp("commands")
+    scene = write_synthetic_scene(root / "scene", SyntheticSpec(dataset="n3d", width=24, height=18, frames=3, cameras=5))
+    common = [
+        "--output-dir", str(root / "runs"), "--experiment-name", "tiny", "--machine.device-type", "cpu",
+        "--vis", "tensorboard", "--steps-per-save", "10", "--steps-per-eval-all-images", "1000",
+    ]
+    data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache")]
+    ns("ns-train", "gear-nerf-small", *common, "--timestamp", "first", "--max-num-iterations", "20", *data, cwd=root)
+    first = root / "runs" / "tiny" / "gear-nerf-small" / "first"
+    ns(
+        "ns-train", "gear-nerf-small", *common, "--timestamp", "resumed", "--max-num-iterations", "10",
+        "--load-dir", str(first / "nerfstudio_models"), *data, cwd=root,
+    )
+    return root, scene, first, root / "runs" / "tiny" / "gear-nerf-small" / "resumed"

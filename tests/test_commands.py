@@ -4,47 +4,18 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
-
-BIN = Path(sys.executable).parent
-
-
-def ns(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}  # ffmpeg for videos
-    result = subprocess.run(
-        [str(BIN / args[0]), *args[1:]], capture_output=True, text=True, cwd=cwd, timeout=600, env=env
-    )
-    assert result.returncode == 0, f"{' '.join(args)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
-    return result
+from tests.conftest import ns
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    """A gear-nerf-small run of 20 iterations, then resumed from its checkpoint for 10 more."""
-    root = tmp_path_factory.mktemp("commands")
-    scene = write_synthetic_scene(root / "scene", SyntheticSpec(dataset="n3d", width=24, height=18, frames=3, cameras=5))
-    common = [
-        "--output-dir", str(root / "runs"), "--experiment-name", "tiny", "--machine.device-type", "cpu",
-        "--vis", "tensorboard", "--steps-per-save", "10", "--steps-per-eval-all-images", "1000",
-    ]
-    data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache")]
-    ns("ns-train", "gear-nerf-small", *common, "--timestamp", "first", "--max-num-iterations", "20", *data, cwd=root)
-    first = root / "runs" / "tiny" / "gear-nerf-small" / "first"
-    ns(
-        "ns-train", "gear-nerf-small", *common, "--timestamp", "resumed", "--max-num-iterations", "10",
-        "--load-dir", str(first / "nerfstudio_models"), *data, cwd=root,
-    )
-    return root, scene, first, root / "runs" / "tiny" / "gear-nerf-small" / "resumed"
+def trained(tiny_run):
+    return tiny_run
 
 
 def test_train_writes_config_and_checkpoints_and_resumes(trained):

@@ -1,0 +1,280 @@
+"""Free-viewpoint tracking from user clicks (Gear-NeRF Sec 4.5).
+
+Masks for novel viewpoints: the ray through a clicked pixel is traced and its median termination
+depth gives the 3D point where it first meets a surface; the point is projected into a target view,
+whose SAM feature map is rendered from the 4D embedding (Eq 8) and decoded with the projected point
+as the prompt. Masks for novel time steps: the bounding box of the mask at time t prompts the decoder
+on the rendered features at the neighbouring frame t + 1 (or t - 1), frame by frame.
+
+Depth choice: the *median termination depth*. The click ray is sampled densely (CLICK_SAMPLES
+uniform samples between the model's near and far planes) and the field's densities give the
+volume-rendering weights w_i (Eq 1); the depth is the first sample at which the accumulated weight
+sum_{j<=i} w_j reaches half the ray's accumulation A = sum_i w_i, i.e. the median of where the ray
+terminates inside the scene. Unlike the expected depth sum_i w_i t_i / A, it does not average a
+foreground edge with the background behind it, so it lies on the first surface the ray meets. A ray
+whose accumulation A stays below `min_accumulation` (default 0.5: it more likely ends nowhere than on
+a surface; "empty sky", or a ray leaving the scene box) hits nothing and raises `TrackingError`.
+
+Every failure a user can cause (time outside [0, 1], a pixel outside the image, a click on nothing, a
+point behind or outside a target view) raises `TrackingError` with a message that says which.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Dict, Iterator, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.model_components.ray_samplers import UniformSampler
+from torch import Tensor
+
+from gear_nerfstudio.projection import project
+from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres
+
+if TYPE_CHECKING:
+    from nerfstudio.models.base_model import Model
+
+HIT_ACCUMULATION = 0.5
+"""Default accumulated weight a click ray needs to count as meeting a surface."""
+CLICK_SAMPLES = 256
+"""Uniform samples along a click ray for its median termination depth."""
+PROJECTABLE = (CameraType.PERSPECTIVE.value, CameraType.FISHEYE.value)
+
+
+class TrackingError(ValueError):
+    """A click, camera or time that tracking cannot use; the message says which and why."""
+
+
+@dataclass
+class TrackedMask:
+    """The mask of one target view at one time, with the prompt that produced it (Sec 4.5)."""
+
+    time: float
+    mask: np.ndarray  # (H, W) bool
+    prompt: Dict = field(default_factory=dict)  # {"points", "labels"} or {"box", "from_time"}
+
+
+def check_time(time: float, what: str = "time") -> float:
+    """Times are in [0, 1] (frame index / (T - 1)); anything else is a TrackingError."""
+    if not isinstance(time, (int, float)) or not math.isfinite(time) or not 0.0 <= time <= 1.0:
+        raise TrackingError(f"{what} {time} is outside [0, 1] (times are frame index / (frames - 1))")
+    return float(time)
+
+
+def single_camera(camera: Cameras, time: Optional[float] = None) -> Cameras:
+    """A flat Cameras of one camera, with `time` as its time when given."""
+    if camera.size != 1:
+        raise TrackingError(f"expected a single camera, got a Cameras of shape {tuple(camera.shape)}")
+    flat = camera.flatten()
+    times = flat.times if time is None else torch.full((1, 1), float(time), device=flat.device)
+    return Cameras(
+        camera_to_worlds=flat.camera_to_worlds,
+        fx=flat.fx,
+        fy=flat.fy,
+        cx=flat.cx,
+        cy=flat.cy,
+        width=flat.width,
+        height=flat.height,
+        distortion_params=flat.distortion_params,
+        camera_type=flat.camera_type,
+        times=times,
+    )
+
+
+def image_size(camera: Cameras) -> Tuple[int, int]:
+    """(H, W) of a single camera."""
+    return int(camera.height.reshape(-1)[0]), int(camera.width.reshape(-1)[0])
+
+
+@contextlib.contextmanager
+def _evaluating(model: "Model") -> Iterator[None]:
+    """Render in eval mode (no sample jitter), restoring the model's mode afterwards."""
+    was_training = model.training
+    model.eval()
+    try:
+        yield
+    finally:
+        model.train(was_training)
+
+
+def _render(model: "Model", camera: Cameras, time: float, pixels: Tensor) -> Dict[str, Tensor]:
+    """Model outputs for rays through pixel coordinates (..., 2) = (x, y) of a camera at a time."""
+    camera = single_camera(camera, time).to(model.device)
+    rays = camera.generate_rays(camera_indices=0, coords=pixels[..., [1, 0]].to(model.device))
+    with _evaluating(model):
+        return model.get_outputs_for_camera_ray_bundle(rays)
+
+
+def click_point(
+    model: "Model",
+    camera: Cameras,
+    pixel: Tuple[float, float],
+    time: float,
+    min_accumulation: float = HIT_ACCUMULATION,
+) -> Tensor:
+    """The 3D world point (3,) where the ray through `pixel` = (x, y) first meets a surface at `time`.
+
+    Sec 4.5: trace the ray and take its median termination depth (see the module docstring). Raises
+    TrackingError for a time outside [0, 1], a pixel outside the image, or a ray whose accumulation
+    stays below `min_accumulation` (it hits nothing).
+    """
+    time = check_time(time, "click time")
+    height, width = image_size(camera)
+    x, y = float(pixel[0]), float(pixel[1])
+    if not (math.isfinite(x) and math.isfinite(y) and 0.0 <= x < width and 0.0 <= y < height):
+        raise TrackingError(f"click pixel (x={x:g}, y={y:g}) is outside the {width}x{height} image")
+    camera = single_camera(camera, time).to(model.device)
+    rays = model.collider(camera.generate_rays(camera_indices=0, coords=torch.tensor([[y, x]], device=model.device)))
+    samples = UniformSampler(num_samples=CLICK_SAMPLES, train_stratified=False)(rays)
+    positions = samples.frustums.get_positions()
+    with torch.no_grad():
+        density = model.field(
+            positions.reshape(-1, 3), samples.frustums.directions.reshape(-1, 3), samples.times.reshape(-1, 1)
+        )["density"]
+        weights = samples.get_weights(density.reshape(*positions.shape[:-1], 1))[0, :, 0]
+    accumulation = float(weights.sum())
+    if accumulation < min_accumulation:
+        raise TrackingError(
+            f"the click at pixel (x={x:g}, y={y:g}), time {time:g} hits nothing: the ray's accumulated "
+            f"density is {accumulation:.3f} < {min_accumulation:g} (empty sky or outside the scene)"
+        )
+    median = int(torch.searchsorted(torch.cumsum(weights, 0), torch.tensor([accumulation / 2], device=weights.device)))
+    depth = (samples.frustums.starts[0, median] + samples.frustums.ends[0, median]) / 2
+    return (rays.origins[0] + rays.directions[0] * depth).detach().cpu().float()
+
+
+def project_prompt(camera: Cameras, point: Tensor) -> Tuple[float, float]:
+    """Pixel (x, y) of a world point in a single pinhole or fisheye camera.
+
+    Raises TrackingError when the camera cannot be projected into (equirectangular and the like), the
+    point is behind it, or it falls outside the image.
+    """
+    camera = single_camera(camera)
+    if int(camera.camera_type.reshape(-1)[0]) not in PROJECTABLE:
+        raise TrackingError(
+            f"cannot project into a {CameraType(int(camera.camera_type.reshape(-1)[0])).name.lower()} camera; "
+            "tracking supports perspective and fisheye targets"
+        )
+    point = torch.as_tensor(point, dtype=torch.float32).reshape(1, 3)
+    uv, in_front = project(camera.to("cpu"), point)
+    coordinates = ", ".join(f"{v:.3f}" for v in point[0].tolist())
+    if not bool(in_front[0, 0]):
+        raise TrackingError(f"the clicked point ({coordinates}) is behind the camera")
+    x, y = (float(v) for v in uv[0, 0])
+    height, width = image_size(camera)
+    if not (math.isfinite(x) and math.isfinite(y) and 0.0 <= x < width and 0.0 <= y < height):
+        raise TrackingError(
+            f"the clicked point ({coordinates}) projects to pixel (x={x:.1f}, y={y:.1f}), outside the "
+            f"{width}x{height} image"
+        )
+    return x, y
+
+
+def render_embedding(model: "Model", camera: Cameras, time: float, backend: SamBackend) -> Embedding:
+    """SAM features rendered by the model (Eq 8) at the centres of the backend's grid cells that cover
+    the image, zero on the padding cells: an Embedding that the backend's decoder accepts."""
+    time = check_time(time)
+    sam_dim = getattr(getattr(model, "config", None), "sam_dim", backend.embedding_dim)
+    if sam_dim != backend.embedding_dim:
+        raise TrackingError(
+            f"the model renders {sam_dim}-dimensional SAM features but the {backend.name!r} SAM backend "
+            f"decodes {backend.embedding_dim}-dimensional ones"
+        )
+    size = image_size(camera)
+    centres = cell_centres(size, backend.grid_size)  # (rows, cols, 2)
+    rendered = _render(model, camera, time, centres)["sam"]  # (rows, cols, C)
+    rows, cols = centres.shape[:2]
+    features = np.zeros((backend.embedding_dim, backend.grid_size, backend.grid_size), dtype=np.float32)
+    features[:, :rows, :cols] = rendered.detach().cpu().float().permute(2, 0, 1).numpy()
+    return Embedding(features=features, image_size=size)
+
+
+def render_rgb(model: "Model", camera: Cameras, time: float) -> np.ndarray:
+    """The model's colour image (H, W, 3) uint8 of a camera at a time (for overlays)."""
+    height, width = image_size(camera)
+    ys, xs = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    rgb = _render(model, camera, check_time(time), torch.stack([xs, ys], dim=-1))["rgb"]
+    return (rgb.detach().cpu().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def segment(
+    backend: SamBackend,
+    embedding: Embedding,
+    points: np.ndarray,
+    labels: np.ndarray,
+    box: Optional[np.ndarray] = None,
+) -> np.ndarray:
+    """The decoder's best mask (H, W) bool for point prompts (x, y) with labels (1 positive, 0
+    negative) and/or a box (x0, y0, x1, y1); points may be empty when a box is given."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    labels = np.asarray(labels, dtype=np.int64).reshape(-1)
+    if len(points) == 0:
+        points, labels = None, None
+    masks, _ = backend.decode(embedding, points=points, labels=labels, box=box)
+    return np.asarray(masks[0], dtype=bool)
+
+
+def mask_box(mask: np.ndarray) -> Optional[np.ndarray]:
+    """Bounding box (x0, y0, x1, y1) in pixel coordinates of a mask's pixels (edges, so x1 = last
+    column + 1); None for an empty mask."""
+    rows, cols = np.nonzero(mask)
+    if len(rows) == 0:
+        return None
+    return np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], dtype=np.float64)
+
+
+def frame_times(num_frames: int) -> List[float]:
+    """Times of the frames of the model's window: index / (T - 1), 0 for T = 1."""
+    return [index / max(num_frames - 1, 1) for index in range(max(num_frames, 1))]
+
+
+def propagation_chains(click_time: float, times: Sequence[float], num_frames: int) -> Tuple[List[float], List[float]]:
+    """Times visited after and before the clicked time, nearest first: every frame between the click
+    and the furthest requested time, plus the requested times themselves (Sec 4.5 steps one frame
+    at a time)."""
+    later = [t for t in times if t > click_time]
+    earlier = [t for t in times if t < click_time]
+    frames = frame_times(num_frames)
+    forward = sorted({*later, *(f for f in frames if later and click_time < f < max(later))})
+    backward = sorted({*earlier, *(f for f in frames if earlier and min(earlier) < f < click_time)}, reverse=True)
+    return forward, backward
+
+
+def track_view(
+    model: "Model",
+    backend: SamBackend,
+    camera: Cameras,
+    pixels: np.ndarray,
+    labels: np.ndarray,
+    click_time: float,
+    times: Sequence[float],
+    num_frames: int,
+) -> List[TrackedMask]:
+    """Masks of one target view at the clicked time and at `times`, sorted by time.
+
+    The projected clicks `pixels` (N, 2) with `labels` prompt the decoder at the clicked time; then
+    the box of each mask prompts the next frame outwards (a lost, empty mask hands on the last box).
+    """
+    click_time = check_time(click_time, "click time")
+    times = [check_time(t) for t in times]
+    first = segment(backend, render_embedding(model, camera, click_time, backend), pixels, labels)
+    prompt = {"points": np.asarray(pixels).tolist(), "labels": np.asarray(labels).astype(int).tolist()}
+    visited = {click_time: TrackedMask(click_time, first, prompt)}
+    for chain in propagation_chains(click_time, times, num_frames):
+        box, box_time = mask_box(first), click_time
+        for time in chain:
+            if box is None:
+                mask = np.zeros_like(first)
+            else:
+                mask = segment(backend, render_embedding(model, camera, time, backend), np.zeros((0, 2)), [], box)
+            visited[time] = TrackedMask(
+                time, mask, {"box": None if box is None else box.tolist(), "from_time": box_time}
+            )
+            if mask.any():
+                box, box_time = mask_box(mask), time
+    wanted = {click_time, *times}
+    return [visited[t] for t in sorted(visited) if t in wanted]

@@ -1,0 +1,325 @@
+"""Tracking in the viewer (Sec 4.5) on a model trained with the real `ns-train` on a tiny synthetic N3D scene
+with a fast sphere: the "tracked_mask" output of a selected object follows the viewer's camera and time;
+the real `ns-viewer` in a real headless Chromium renders the scene, its time slider shows the motion, and
+a click in the page reaches the model's tracking."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from nerfstudio.cameras.cameras import CameraType
+from PIL import Image
+from scipy import ndimage
+
+from gear_nerfstudio.synthetic.scene import RigCamera, SyntheticScene, scene_objects
+from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.tracking import project_prompt
+from gear_nerfstudio.viewer_tracking import Selection
+
+BIN = Path(sys.executable).parent
+STATIC_SPHERE, FAST_SPHERE = 1, 3
+SPEC = SyntheticSpec(dataset="n3d", width=32, height=24, frames=4, cameras=5, motion="fast")
+CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+CHROMIUM_FLAGS = (
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync", "--window-size=1200,800",
+)
+VIEWER_FOV = math.radians(75.0)
+"""Vertical field of view of viser's browser camera (three.js default), which the viewer renders with."""
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """120 iterations of the single-gear preset without learning-rate warm-up: every point has the full
+    temporal resolution, so motion shows after a short run (the gears of gear-nerf-small only get it
+    through the Sec 4.3 updates, which need a longer run)."""
+    root = tmp_path_factory.mktemp("viewer")
+    scene = write_synthetic_scene(root / "scene", SPEC)
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+    result = subprocess.run(
+        [
+            str(BIN / "ns-train"), "gear-nerf-baseline", "--output-dir", str(root / "runs"),
+            "--experiment-name", "tiny", "--timestamp", "run", "--machine.device-type", "cpu", "--vis", "tensorboard",
+            "--max-num-iterations", "120", "--steps-per-eval-all-images", "100000",
+            "--pipeline.datamanager.train-num-rays-per-batch", "512", "--optimizers.fields.scheduler.warm-up-end", "0",
+            "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache"),
+        ],
+        capture_output=True, text=True, cwd=root, timeout=900, env=env,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    return root, scene, root / "runs" / "tiny" / "gear-nerf-baseline" / "run" / "config.yml"
+
+
+def rig_camera(scene: Path, name: str) -> dict:
+    cameras = json.loads((scene / "ground_truth" / "scene.json").read_text())["cameras"]
+    return next(c for c in cameras if c["name"] == name)
+
+
+def ground_truth_view(scene: Path, name: str, frame: int, width: int, height: int, fov: float):
+    """The synthetic scene rendered from rig camera `name`'s pose with a viewer's pinhole intrinsics."""
+    camera = rig_camera(scene, name)
+    focal = height / 2 / math.tan(fov / 2)
+    view = RigCamera(
+        name="viewer", rotation=np.array(camera["rotation_world_to_camera_opencv"]), centre=np.array(camera["centre"]),
+        fx=focal, fy=focal, cx=width / 2, cy=height / 2, width=width, height=height,
+    )
+    return SyntheticScene(motion=SPEC.motion, supersample=1).render(view, frame)
+
+
+def highlighted(outputs) -> np.ndarray:
+    """Pixels that the tracked-mask overlay changed."""
+    return (outputs["tracked_mask"] - outputs["rgb"]).abs().amax(dim=-1).numpy() > 1e-6
+
+
+# --- the viewer's click callback and the model output, without a browser ----------------------------
+
+
+@pytest.fixture(scope="module")
+def loaded(trained):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, _ = eval_setup(trained[2], test_mode="test")
+    return pipeline
+
+
+def surface_point(pipeline, scene: Path, object_id: int, frame: int, facing: str) -> torch.Tensor:
+    """The point of a sphere's surface that faces rig camera `facing`, in the model's world coordinates."""
+    sphere = next(o for o in scene_objects(SPEC.motion) if o.object_id == object_id)
+    centre = sphere.centre(frame)
+    towards = np.array(rig_camera(scene, facing)["centre"]) - centre
+    point = torch.tensor(centre + sphere.radius * towards / np.linalg.norm(towards), dtype=torch.float32)
+    outputs = pipeline.datamanager.train_dataparser_outputs
+    transform = outputs.dataparser_transform
+    return outputs.dataparser_scale * (transform[:, :3] @ point + transform[:, 3])
+
+
+def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained, loaded):
+    """The "tracked_mask" output of a viewer render (camera built as the viewer builds it) highlights the
+    selected object, at the clicked time and after the time slider moved."""
+    from nerfstudio.viewer.utils import CameraState, get_camera
+    from nerfstudio.viewer.viewer_elements import ViewerClick
+
+    _, scene, _ = trained
+    model = loaded.model
+    tracking = model.tracking
+    backend = loaded.datamanager.sam_backend
+    held_out = loaded.datamanager.eval_dataset.cameras[0:1]  # cam00's pose, the viewer's own intrinsics
+    width, height, fov = 64, 48, math.radians(60.0)
+
+    def viewer_camera(time_: float):
+        state = CameraState(
+            fov=fov, aspect=width / height, c2w=held_out.camera_to_worlds[0], camera_type=CameraType.PERSPECTIVE,
+            time=time_,
+        )
+        return get_camera(state, height, width)
+
+    tracking.selection = None
+    assert "tracked_mask" not in model.get_outputs_for_camera(viewer_camera(0.0))  # nothing selected, no work
+
+    # A click whose ray leaves the scene selects nothing and says why.
+    centre = held_out.camera_to_worlds[0, :, 3]
+    away = ViewerClick(tuple(centre.tolist()), tuple(held_out.camera_to_worlds[0, :, 2].tolist()), (0.5, 0.5))
+    tracking.select(away, 0.0, backend)
+    assert tracking.selection is None and "hits nothing" in tracking.status.value
+    assert "tracked_mask" not in model.get_outputs_for_camera(viewer_camera(0.0))
+
+    # The static sphere selected at time 0 (as a click on it would store it), seen at times 0 and 1.
+    tracking.selection = Selection(
+        point=surface_point(loaded, scene, STATIC_SPHERE, 0, "cam00"), time=0.0, backend=backend
+    )
+    for frame in (0, SPEC.frames - 1):
+        camera = viewer_camera(frame / (SPEC.frames - 1))
+        outputs = model.get_outputs_for_camera(camera)
+        mask = highlighted(outputs)
+        truth = ground_truth_view(scene, "cam00", frame, width, height, fov).object_ids == STATIC_SPHERE
+        x, y = project_prompt(camera, tracking.selection.point)
+        near_prompt = np.zeros_like(mask)
+        near_prompt[max(int(y) - 2, 0) : int(y) + 3, max(int(x) - 2, 0) : int(x) + 3] = True
+        assert truth[int(y), int(x)], "the selected point does not project onto the object"
+        assert (mask & near_prompt).any(), f"frame {frame}: the mask misses the selected point"
+        assert (mask & truth).sum() > 0.3 * truth.sum(), f"frame {frame}: the mask misses the object"
+        assert mask.sum() < 0.5 * mask.size, f"frame {frame}: the mask covers half the view"
+        assert torch.equal(outputs["tracked_mask"][~torch.from_numpy(mask)], outputs["rgb"][~torch.from_numpy(mask)])
+    tracking.selection = None
+
+
+# --- the real viewer in a real browser --------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def wait_for(condition, timeout: float, what: str, interval: float = 0.5):
+    """Poll `condition` until it returns something truthy; fail after `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if isinstance(value, np.ndarray) or value:
+            return value
+        time.sleep(interval)
+    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+@pytest.fixture()
+def viewer(trained, tmp_path):
+    """`ns-viewer` on the trained run, on a free local port; stopped at teardown."""
+    port = free_port()
+    log = open(tmp_path / "viewer.log", "w")
+    process = subprocess.Popen(
+        [
+            str(BIN / "ns-viewer"), "--load-config", str(trained[2]), "--viewer.websocket-port", str(port),
+            "--viewer.websocket-host", "127.0.0.1",
+        ],
+        stdout=log, stderr=subprocess.STDOUT, cwd=trained[0],
+    )
+
+    def listening() -> bool:
+        assert process.poll() is None, (tmp_path / "viewer.log").read_text()[-3000:]
+        with socket.socket() as sock:
+            return sock.connect_ex(("127.0.0.1", port)) == 0
+
+    try:
+        wait_for(listening, 180, "ns-viewer to listen")
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=20)
+        log.close()
+
+
+@pytest.fixture()
+def browser(tmp_path):
+    """Headless Chromium under chromedriver (Debian packages); quit at teardown."""
+    if CHROMIUM is None or CHROMEDRIVER is None:
+        pytest.skip("needs the Debian packages chromium and chromium-driver (scripts/test.sh installs them)")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for flag in (*CHROMIUM_FLAGS, f"--user-data-dir={tempfile.mkdtemp(dir=tmp_path)}"):
+        options.add_argument(flag)
+    service = Service(CHROMEDRIVER)
+    driver = webdriver.Chrome(service=service, options=options)
+    try:
+        driver.set_page_load_timeout(60)
+        driver.set_script_timeout(30)
+        yield driver
+    finally:
+        driver.quit()
+        service.stop()
+
+
+def screenshot(driver) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(driver.get_screenshot_as_png())).convert("RGB")).astype(np.float32)
+
+
+def by_label(driver, label: str, what: str):
+    """The first element matching XPath step `what` after the GUI label with this text."""
+    from selenium.webdriver.common.by import By
+
+    return driver.find_element(By.XPATH, f"//label[normalize-space()='{label}']/following::{what}[1]")
+
+
+def press(driver, element, key: str) -> None:
+    """Focus a GUI element and press a key, as a keyboard user does (sliders: Home, End, arrows)."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    driver.execute_script("arguments[0].focus();", element)
+    ActionChains(driver).send_keys(key).perform()
+
+
+def settled_view(driver, box, timeout: float, differs_from=None) -> np.ndarray:
+    """A screenshot whose scene area is no longer blank, differs from `differs_from` (when given) and is
+    the same in two screenshots 1.5 s apart, i.e. the viewer has sent its final render."""
+    x0, y0, x1, y1 = box
+    previous = [None]
+
+    def ready():
+        shot = screenshot(driver)
+        view = shot[y0:y1, x0:x1]
+        stable = previous[0] is not None and np.abs(view - previous[0][y0:y1, x0:x1]).mean() < 0.5
+        previous[0] = shot
+        if view.std() < 5.0:  # blank canvas
+            return None
+        if differs_from is not None and np.abs(view - differs_from[y0:y1, x0:x1]).mean() < 1.0:
+            return None
+        return shot if stable else None
+
+    return wait_for(ready, timeout, "a rendered frame", interval=1.5)
+
+
+def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, browser, viewer, tmp_path):
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+
+    _, scene, _ = trained
+    driver = browser
+    driver.get(viewer)
+    wait_for(lambda: driver.find_elements(By.XPATH, "//*[normalize-space()='Connected']"), 60, "the websocket")
+    wait_for(lambda: driver.find_elements(By.XPATH, "//button[normalize-space()='Hide Train Cams']"), 30, "the GUI")
+    # The training cameras' images would cover the render at the start pose (the first training camera).
+    driver.find_element(By.XPATH, "//button[normalize-space()='Hide Train Cams']").click()
+    press(driver, by_label(driver, "Max res", "*[@role='slider']"), Keys.HOME)  # 64 px: quick CPU renders
+
+    # The 3D view's canvas: the narrowest large one (the GUI panel sits beside it).
+    canvas_element = min(
+        (c for c in driver.find_elements(By.TAG_NAME, "canvas") if c.rect["width"] > 100), key=lambda c: c.rect["width"]
+    )
+    canvas = canvas_element.rect
+    left, top, width, height = (int(round(canvas[k])) for k in ("x", "y", "width", "height"))
+    box = (left + 4, top + 4, left + width - 4, top + height - 4)
+    first = settled_view(driver, box, 120)
+    Image.fromarray(first.astype(np.uint8)).save(tmp_path / "time_0.png")
+
+    press(driver, by_label(driver, "Time", "*[@role='slider']"), Keys.END)  # time 1.0, the last frame
+    last = settled_view(driver, box, 120, differs_from=first)
+    Image.fromarray(last.astype(np.uint8)).save(tmp_path / "time_1.png")
+
+    # Where the fast sphere moves (ground truth at the viewer's camera) the screenshots differ more than
+    # on the static background.
+    # The viewer starts at the first training image's camera: cam01 (cam00 is held out).
+    truth = [ground_truth_view(scene, "cam01", f, width, height, VIEWER_FOV).object_ids for f in (0, SPEC.frames - 1)]
+    region = np.zeros((first.shape[0], first.shape[1]), dtype=bool)
+    x0, y0, x1, y1 = box
+    region[y0:y1, x0:x1] = True
+    moving = np.zeros_like(region)
+    moving[top : top + height, left : left + width] = (truth[0] == FAST_SPHERE) | (truth[1] == FAST_SPHERE)
+    still = np.zeros_like(region)
+    still[top : top + height, left : left + width] = (truth[0] == truth[1]) & (truth[0] != FAST_SPHERE)
+    still &= ~ndimage.binary_dilation(moving, iterations=25)
+    change = np.abs(last - first).mean(axis=-1)
+    moving_change, still_change = change[moving & region].mean(), change[still & region].mean()
+    assert moving_change > 2.0 * still_change, (moving_change, still_change)
+
+    # "Select object", then a click on the static sphere: the click's ray reaches the model's tracking
+    # (Sec 4.5), which reports the 3D point it selected or why the ray hit nothing.
+    driver.find_element(By.XPATH, "//button[normalize-space()='Select object (then click it)']").click()
+    rows, cols = np.nonzero(truth[1] == STATIC_SPHERE)
+    x, y = float(cols.mean()), float(rows.mean())
+    time.sleep(1.0)  # the pointer callback is registered through the websocket
+    ActionChains(driver).move_to_element_with_offset(canvas_element, int(x - width / 2), int(y - height / 2)).click().perform()
+    status = by_label(driver, "Tracked", "input")
+    wait_for(lambda: (status.get_attribute("value") or "") != "nothing selected", 60, "the click to reach the model")
+    assert "point (" in status.get_attribute("value") or "hits nothing" in status.get_attribute("value")
