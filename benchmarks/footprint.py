@@ -1,0 +1,120 @@
+"""What a scene costs: parameters in use, checkpoint size and peak training memory (issue "model only
+what a scene requires").
+
+Trains, with the real `ns-train`, gear-nerf-small and the plain K-Planes baseline (one gear with the full
+time axis, `gear-nerf-baseline`) on a fully static and on a mixed synthetic scene, and gear-nerf-small on
+a long low-resolution video (20 cameras, 300 frames). For each run:
+
+- parameters: all of the field, and those in use (`GearField.parameters_in_use`: the planes of gears
+  that never had a training sample get no gradient and no optimizer step);
+- the gear levels that were used;
+- the size of the final checkpoint (model and optimizer state: Adam keeps no state for unused planes);
+- the peak resident memory (RSS) of the training process, from `os.wait4` on it.
+
+    .venv/bin/python benchmarks/footprint.py --output outputs/footprint
+
+Prints a markdown table and writes it to `<output>/footprint.md`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import List, Tuple
+
+import torch
+import tyro
+
+from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+
+BIN = Path(sys.executable).parent
+
+
+@dataclasses.dataclass
+class Run:
+    name: str
+    method: str
+    spec: SyntheticSpec
+    iterations: int
+
+
+@dataclasses.dataclass
+class FootprintBenchmark:
+    output: Path = Path("outputs/footprint")
+    iterations: int = 600
+    """Iterations on the static and mixed scenes (the small preset's first gear update is at 2 epochs)."""
+    long_iterations: int = 300
+    """Iterations on the long video (enough to cycle through the datamanager's image subsets)."""
+    long_frames: int = 300
+    long_cameras: int = 20
+
+    def runs(self) -> List[Run]:
+        short = dict(dataset="n3d", width=64, height=48, frames=6, cameras=6)
+        long = SyntheticSpec(dataset="n3d", width=32, height=24, frames=self.long_frames, cameras=self.long_cameras)
+        runs = []
+        for motion in ("static", "mixed"):
+            for method in ("gear-nerf-small", "gear-nerf-baseline"):
+                runs.append(Run(f"{motion}", method, SyntheticSpec(motion=motion, **short), self.iterations))
+        runs.append(Run(f"long ({self.long_cameras} cameras x {self.long_frames} frames)", "gear-nerf-small", long,
+                        self.long_iterations))
+        return runs
+
+    def main(self) -> None:
+        rows = [
+            "| scene | method | iterations | parameters | in use | gears used | checkpoint MiB | peak RSS MiB | training s |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for run in self.runs():
+            total, in_use, gears, checkpoint, rss, seconds = self.measure(run)
+            rows.append(
+                f"| {run.name} | {run.method} | {run.iterations} | {total} | {in_use} | {gears} | "
+                f"{checkpoint / 2**20:.1f} | {rss / 2**20:.0f} | {seconds:.0f} |"
+            )
+            print(rows[-1], flush=True)
+        table = "\n".join(rows)
+        print(table)
+        (self.output / "footprint.md").write_text(table + "\n")
+
+    def measure(self, run: Run) -> Tuple[int, int, str, int, int, float]:
+        key = f"{run.spec.motion}-{run.spec.frames}x{run.spec.cameras}"
+        scene = self.output / f"scene-{key}"
+        if not (scene / "poses_bounds.npy").exists():
+            write_synthetic_scene(scene, run.spec)
+        runs = self.output / "runs"
+        runs.mkdir(parents=True, exist_ok=True)
+        command = [
+            str(BIN / "ns-train"), run.method, "--output-dir", str(runs), "--experiment-name", key,
+            "--timestamp", "run", "--max-num-iterations", str(run.iterations), "--machine.device-type", "cpu",
+            "--vis", "tensorboard", "--steps-per-eval-all-images", "1000000", "--steps-per-eval-image", "1000000",
+            "--steps-per-eval-batch", "1000000", "neural-3d-video-data", "--data", str(scene),
+            "--cache-dir", str(self.output / "cache"),
+        ]
+        env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+        start = time.perf_counter()
+        with open(runs / f"{key}-{run.method}.log", "w") as log:
+            process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+            _, status, usage = os.wait4(process.pid, 0)
+        seconds = time.perf_counter() - start
+        if os.waitstatus_to_exitcode(status) != 0:
+            raise RuntimeError(f"{' '.join(command)} failed; see {log.name}")
+        folder = runs / key / run.method / "run"
+        checkpoint = sorted((folder / "nerfstudio_models").glob("step-*.ckpt"))[-1]
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)["pipeline"]
+        field_state = {k[len("_model.field."):]: v for k, v in state.items() if k.startswith("_model.field.")}
+        used = field_state["used_gears"]
+        unused_planes = sum(
+            v.numel() for k, v in field_state.items()
+            if k.startswith("time_planes.") and not bool(used[int(k.split(".")[1])])
+        )
+        total = sum(v.numel() for k, v in field_state.items() if v.is_floating_point() and k != "aabb")
+        gears = ",".join(str(g + 1) for g in range(len(used)) if bool(used[g]))
+        # ru_maxrss is in KiB on Linux.
+        return total, total - unused_planes, gears, checkpoint.stat().st_size, usage.ru_maxrss * 1024, seconds
+
+
+if __name__ == "__main__":
+    tyro.cli(FootprintBenchmark).main()
