@@ -47,12 +47,17 @@ def cache_dir(tmp_path) -> Path:
     return tmp_path / "frame-cache"
 
 
-def ns(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    """Run a command of the virtual environment (ffmpeg for videos on PATH); fail with its output."""
+def command(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Run a command of the virtual environment, with its bin folder (ffmpeg for videos) on PATH."""
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
-    result = subprocess.run(
+    return subprocess.run(
         [str(BIN / args[0]), *args[1:]], capture_output=True, text=True, cwd=cwd, timeout=900, env=env
     )
+
+
+def ns(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """`command`, failing the test with the command's output when it fails."""
+    result = command(*args, cwd=cwd)
     assert result.returncode == 0, f"{' '.join(args)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
     return result
 

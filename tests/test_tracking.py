@@ -5,9 +5,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +15,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from PIL import Image
 
 from gear_nerfstudio.track_cli import TrackCommand
+from tests.conftest import command as run
 from gear_nerfstudio.track_metrics import MaskScore, accuracy, iou, summarise
 from gear_nerfstudio.tracking import (
     HIT_ACCUMULATION,
@@ -29,18 +28,12 @@ from gear_nerfstudio.tracking import (
     segment,
 )
 
-BIN = Path(sys.executable).parent
 FAST_SPHERE = 3
 CLICK_CAMERA = "cam01"
 CLICK_FRAME = 1  # of 3: time 0.5
 FAINT = 0.01
 """Accumulation threshold for clicks on this briefly trained model, whose density is still faint
 (about 0.1 on the spheres); rays through empty space accumulate exactly 0."""
-
-
-def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
-    return subprocess.run([str(BIN / args[0]), *args[1:]], capture_output=True, text=True, cwd=cwd, timeout=600, env=env)
 
 
 @pytest.fixture(scope="module")

@@ -8,11 +8,9 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
 import shutil
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -28,8 +26,8 @@ from gear_nerfstudio.synthetic.scene import RigCamera, SyntheticScene, scene_obj
 from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from gear_nerfstudio.tracking import project_prompt
 from gear_nerfstudio.viewer_tracking import Selection
+from tests.conftest import BIN, ns
 
-BIN = Path(sys.executable).parent
 STATIC_SPHERE, FAST_SPHERE = 1, 3
 SPEC = SyntheticSpec(dataset="n3d", width=32, height=24, frames=4, cameras=5, motion="fast")
 CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
@@ -48,18 +46,13 @@ def trained(tmp_path_factory):
     through the Sec 4.3 updates, which need a longer run)."""
     root = tmp_path_factory.mktemp("viewer")
     scene = write_synthetic_scene(root / "scene", SPEC)
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
-    result = subprocess.run(
-        [
-            str(BIN / "ns-train"), "gear-nerf-baseline", "--output-dir", str(root / "runs"),
-            "--experiment-name", "tiny", "--timestamp", "run", "--machine.device-type", "cpu", "--vis", "tensorboard",
-            "--max-num-iterations", "120", "--steps-per-eval-all-images", "100000",
-            "--pipeline.datamanager.train-num-rays-per-batch", "512", "--optimizers.fields.scheduler.warm-up-end", "0",
-            "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache"),
-        ],
-        capture_output=True, text=True, cwd=root, timeout=900, env=env,
+    ns(
+        "ns-train", "gear-nerf-baseline", "--output-dir", str(root / "runs"),
+        "--experiment-name", "tiny", "--timestamp", "run", "--machine.device-type", "cpu", "--vis", "tensorboard",
+        "--max-num-iterations", "120", "--steps-per-eval-all-images", "100000",
+        "--pipeline.datamanager.train-num-rays-per-batch", "512", "--optimizers.fields.scheduler.warm-up-end", "0",
+        "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache"), cwd=root,
     )
-    assert result.returncode == 0, result.stderr[-3000:]
     return root, scene, root / "runs" / "tiny" / "gear-nerf-baseline" / "run" / "config.yml"
 
 
