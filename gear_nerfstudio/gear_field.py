@@ -230,6 +230,7 @@ class GearField(nn.Module):
         gear_feature_dim: M', channels of the gear function's planes.
         gear_resolution: spatial resolution of the gear function's planes.
         gear_time_resolution: temporal resolution of k'; ``num_frames`` when None.
+        time_resolutions: rows of each gear's space-time planes; ``temporal_resolutions`` (Sec 4.4) when None.
         geo_feat_dim: features passed from the density MLP to the colour MLP.
         hidden_dim: width of the density and SAM MLPs.
         hidden_dim_color: width of the colour MLP.
@@ -248,6 +249,7 @@ class GearField(nn.Module):
         gear_feature_dim: int = 8,
         gear_resolution: int = 64,
         gear_time_resolution: Optional[int] = None,
+        time_resolutions: Optional[Sequence[int]] = None,
         geo_feat_dim: int = 15,
         hidden_dim: int = 64,
         hidden_dim_color: int = 64,
@@ -262,7 +264,12 @@ class GearField(nn.Module):
         self.num_gears = num_gears
         self.feature_dim = feature_dim
         self.spatial_distortion = spatial_distortion
-        self.time_resolutions = temporal_resolutions(num_gears, num_frames)
+        if time_resolutions is None:
+            self.time_resolutions = temporal_resolutions(num_gears, num_frames)
+        elif len(time_resolutions) != num_gears or min(time_resolutions) < 1:
+            raise ValueError(f"time_resolutions needs {num_gears} values >= 1 (one per gear), got {time_resolutions}")
+        else:
+            self.time_resolutions = [int(rows) for rows in time_resolutions]
 
         self.space_planes = PlaneTriple(feature_dim, [(r, r) for r in resolutions], init_space_plane)
         self.time_planes = nn.ModuleList(

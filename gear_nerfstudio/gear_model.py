@@ -69,6 +69,10 @@ class GearNeRFModelConfig(ModelConfig):
     """Spatial resolution of h', k'."""
     gear_time_resolution: Optional[int] = None
     """Temporal resolution of k'; None uses num_frames."""
+    time_resolutions: Optional[Tuple[int, ...]] = None
+    """Rows of each gear's space-time planes k^G (one value per gear); None: Sec 4.4, linear from 1 row
+    (gear 1) to num_frames rows (gear N_gear). With one gear, e.g. ``(T // 2,)`` gives the paper's "naive
+    temporal sampling" at medium temporal resolution."""
     geo_feat_dim: int = 15
     """Features from the density MLP to the colour MLP."""
     hidden_dim: int = 64
@@ -170,6 +174,7 @@ class GearNeRFModel(Model):
             gear_feature_dim=config.gear_feature_dim,
             gear_resolution=config.gear_resolution,
             gear_time_resolution=config.gear_time_resolution,
+            time_resolutions=config.time_resolutions,
             geo_feat_dim=config.geo_feat_dim,
             hidden_dim=config.hidden_dim,
             hidden_dim_color=config.hidden_dim_color,
@@ -306,10 +311,12 @@ class GearNeRFModel(Model):
 
         rgb = self.renderer_rgb(rgb=split.unpack(field_outputs["rgb"]), weights=weights)
         accumulation = self.renderer_accumulation(weights=weights)
-        sam = self.field.lift_sam(torch.sum(weights * split.unpack(field_outputs["sam"]), dim=-2), accumulation)
-        levels = split.unpack(field_outputs["gear_level"][:, None].to(weights.dtype))
+        sam = self.field.lift_sam(split.accumulate(weights, field_outputs["sam"]), accumulation)
+        levels = field_outputs["gear_level"][:, None].to(weights.dtype)
+        # weighted mean of p; the weights are summed in the same order as p w, so one level gives it exactly
+        level_sum, weight_sum = split.accumulate(weights, torch.cat([levels, torch.ones_like(levels)], -1)).unbind(-1)
         gear_level = torch.where(
-            accumulation > 1e-6, torch.sum(weights * levels, dim=-2) / accumulation.clamp(min=1e-6), 1.0
+            weight_sum[:, None] > 1e-6, (level_sum / weight_sum.clamp(min=1e-6))[:, None], 1.0
         )
         gear_fraction = ((gear_level - 1.0) / max(self.config.num_gears - 1, 1)).clamp(0.0, 1.0)
         outputs: Dict[str, Any] = {

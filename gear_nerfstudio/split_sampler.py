@@ -6,6 +6,10 @@ segment has delta = 0, hence alpha = 0 and weight 0 in ``RaySamples.get_weights`
 transmittance of the real samples untouched, so nerfstudio's renderers work unchanged. The field is
 evaluated only on the real (packed) sub-samples; ``unpack`` fills each padding slot with the values of
 the ray's last real sub-sample, which keeps the ``"last_sample"`` background colour correct.
+
+Padding costs memory and time in proportion to the batch's longest ray: a few upshifted rays make every
+row that long. Wide per-sample outputs (SAM embedding, gear level) are therefore summed over the packed
+sub-samples with ``accumulate`` instead of being unpacked.
 """
 
 from __future__ import annotations
@@ -41,6 +45,8 @@ class SplitRaySamples:
     """Base samples per ray, n."""
     num_samples_per_ray: Int[Tensor, "num_rays"]
     """Real sub-samples per ray: sum over the ray's base samples of split_base^(p-1)."""
+    ray_index: Int[Tensor, "num_valid"]
+    """Ray of each real sub-sample, in packed order."""
 
     def pack(self, values: Tensor) -> Tensor:
         """(num_rays, max_samples, C) -> (num_valid, C)."""
@@ -49,6 +55,13 @@ class SplitRaySamples:
     def unpack(self, values: Tensor) -> Tensor:
         """(num_valid, C) -> (num_rays, max_samples, C); padding copies the ray's last real sub-sample."""
         return values[self.packed_index]
+
+    def accumulate(
+        self, weights: Float[Tensor, "num_rays max_samples 1"], values: Float[Tensor, "num_valid C"]
+    ) -> Float[Tensor, "num_rays C"]:
+        """Eq 8: sum_i w_i values_i over each ray's real sub-samples (padding has weight 0 and is skipped)."""
+        weighted = self.pack(weights) * values
+        return weighted.new_zeros((weights.shape[0], values.shape[-1])).index_add(0, self.ray_index, weighted)
 
     def to_base(self, weights: Float[Tensor, "num_rays max_samples 1"]) -> Float[Tensor, "num_rays n 1"]:
         """Sum sub-sample weights into their base samples (exact: sub-segments tile the base segment)."""
@@ -102,14 +115,16 @@ def split_ray_samples(
         spacing_to_euclidean_fn=None,
     )
     flat_valid = valid.reshape(-1)
+    sample_index = flat_valid.nonzero()[:, 0]
     return SplitRaySamples(
         ray_samples=split,
         valid=valid,
-        sample_index=flat_valid.nonzero()[:, 0],
+        sample_index=sample_index,
         packed_index=(flat_valid.long().cumsum(0) - 1).reshape(num_rays, max_samples),
         parent=parent,
         num_base_samples=num_base,
         num_samples_per_ray=num_samples_per_ray,
+        ray_index=torch.div(sample_index, max(max_samples, 1), rounding_mode="floor"),
     )
 
 

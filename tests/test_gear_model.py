@@ -173,6 +173,16 @@ def test_metadata_drives_collider_frames_and_contraction():
     assert model.field.time_resolutions == [1, 1, 1, 1]
 
 
+def test_time_resolutions_override_sets_rows_of_each_gear():
+    model = make_model(num_gears=1, time_resolutions=(3,))
+    assert model.field.time_resolutions == [3]
+    assert [tuple(plane.shape[-2:]) for plane in model.field.time_planes[0].planes][0][0] == 3
+    with pytest.raises(ValueError, match="one per gear"):
+        make_model(num_gears=4, time_resolutions=(3,))
+    with pytest.raises(ValueError, match="one per gear"):
+        make_model(num_gears=1, time_resolutions=(0,))
+
+
 def test_eval_image_metrics():
     model = make_model()
     model.eval()
