@@ -39,6 +39,7 @@ from gear_nerfstudio.tracking import (
     click_point,
     frame_times,
     image_size,
+    Propagation,
     project_prompt,
     render_rgb,
     track_view,
@@ -71,6 +72,9 @@ class TrackCommand:
     """Camera-path JSON whose every frame is a target view."""
     times: Optional[List[float]] = None
     """Times in [0, 1] to track to; default: every frame of the trained window."""
+    propagation: Propagation = "embedding"
+    """Prompt at t +- 1: "embedding" (the mask's box moved onto the object's rendered-feature match, plus
+    that point; ours) or "box" (the mask's box only, the paper)."""
     min_accumulation: float = HIT_ACCUMULATION
     """A click ray whose accumulated density stays below this hits nothing (lower it for a model trained
     only briefly, whose density is still faint)."""
@@ -300,7 +304,15 @@ class Plan:
         records, scores = [], []
         for name, camera in self.views.items():
             tracked = track_view(
-                model, backend, camera, self.view_pixels[name], self.labels, self.click_time, self.times, num_frames
+                model,
+                backend,
+                camera,
+                self.view_pixels[name],
+                self.labels,
+                self.click_time,
+                self.times,
+                num_frames,
+                command.propagation,
             )
             frames = []
             for item in tracked:
@@ -325,6 +337,7 @@ class Plan:
             **header,
             "depth": "median termination depth: where the click ray's accumulated weight reaches half its total",
             "min_accumulation": command.min_accumulation,
+            "propagation": command.propagation,
             "click": {
                 "camera": self.click_name,
                 "time": self.click_time,

@@ -6,6 +6,13 @@ whose SAM feature map is rendered from the 4D embedding (Eq 8) and decoded with 
 as the prompt. Masks for novel time steps: the bounding box of the mask at time t prompts the decoder
 on the rendered features at the neighbouring frame t + 1 (or t - 1), frame by frame.
 
+Propagation "embedding" (ours, the default) adds the 4D embedding to that box: the object's feature,
+the mean rendered SAM feature under the clicked-time mask, is looked up in the rendered features at
+t + 1 (`locate_object`: a point inside the cells that are closer to it than to the rest of the image)
+and prompts as a positive point, with the box of the mask at t, moved onto that point when it does not
+already hold it. A box alone loses an object that moves further than its own size between frames; the
+paper's box-only propagation remains as "box".
+
 Depth choice: the *median termination depth*. The click ray is sampled densely (CLICK_SAMPLES
 uniform samples between the model's near and far planes) and the field's densities give the
 volume-rendering weights w_i (Eq 1); the depth is the first sample at which the accumulated weight
@@ -24,16 +31,17 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
+from scipy import ndimage
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.model_components.ray_samplers import UniformSampler
 from torch import Tensor
 
 from gear_nerfstudio.projection import project
-from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres
+from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, valid_grid
 
 if TYPE_CHECKING:
     from nerfstudio.models.base_model import Model
@@ -43,6 +51,8 @@ HIT_ACCUMULATION = 0.5
 CLICK_SAMPLES = 256
 """Uniform samples along a click ray for its median termination depth."""
 PROJECTABLE = (CameraType.PERSPECTIVE.value, CameraType.FISHEYE.value)
+Propagation = Literal["embedding", "box"]
+"""How a mask at t prompts t +- 1: its box moved onto the object's embedding match (ours), or its box."""
 
 
 class TrackingError(ValueError):
@@ -55,7 +65,7 @@ class TrackedMask:
 
     time: float
     mask: np.ndarray  # (H, W) bool
-    prompt: Dict = field(default_factory=dict)  # {"points", "labels"} or {"box", "from_time"}
+    prompt: Dict = field(default_factory=dict)  # {"points", "labels"} (click), {"box", "from_time"} (+ points, labels)
 
 
 def check_time(time: float, what: str = "time") -> float:
@@ -244,6 +254,102 @@ def propagation_chains(click_time: float, times: Sequence[float], num_frames: in
     return forward, backward
 
 
+def mask_cells(mask: np.ndarray, grid_size: int) -> np.ndarray:
+    """Valid embedding cells (rows, cols) whose centre pixel lies inside a mask (H, W)."""
+    centres = cell_centres(mask.shape, grid_size).numpy()
+    rows = np.clip(centres[..., 1].astype(int), 0, mask.shape[0] - 1)
+    cols = np.clip(centres[..., 0].astype(int), 0, mask.shape[1] - 1)
+    return mask[rows, cols]
+
+
+def object_features(embedding: Embedding, mask: np.ndarray) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """Mean feature (C,) of the cells under a mask and of the other valid cells; None when either is empty."""
+    rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
+    features = embedding.features[:, :rows, :cols].reshape(embedding.features.shape[0], -1).T
+    inside = mask_cells(mask, embedding.grid_size).reshape(-1)
+    if inside.all() or not inside.any():
+        return None
+    return features[inside].mean(axis=0), features[~inside].mean(axis=0)
+
+
+def locate_object(embedding: Embedding, features: Tuple[np.ndarray, np.ndarray]) -> Optional[Tuple[float, float]]:
+    """Pixel (x, y) inside the object at another time, from its feature: among the cells closer to the
+    object's feature than to the background's, take the 8-connected region holding the closest cell and
+    return its innermost cell's centre (furthest from the region's border). None when no cell is closer.
+    """
+    obj, background = features
+    rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
+    cells = embedding.features[:, :rows, :cols].reshape(embedding.features.shape[0], -1).T
+    to_object = np.square(cells - obj).sum(axis=1)
+    candidates = (to_object < np.square(cells - background).sum(axis=1)).reshape(rows, cols)
+    if not candidates.any():
+        return None
+    closest = np.unravel_index(int(np.argmin(np.where(candidates.reshape(-1), to_object, np.inf))), (rows, cols))
+    regions, _ = ndimage.label(candidates, structure=np.ones((3, 3)))
+    region = regions == regions[closest]
+    depth = ndimage.distance_transform_edt(np.pad(region, 1))[1:-1, 1:-1]
+    innermost = int(np.argmax(depth))
+    x, y = cell_centres(embedding.image_size, embedding.grid_size).reshape(-1, 2)[innermost].tolist()
+    return x, y
+
+
+def centred_box(box: np.ndarray, centre: Tuple[float, float], image_size: Tuple[int, int]) -> np.ndarray:
+    """The box (x0, y0, x1, y1) if it holds `centre` = (x, y); else moved to be centred on it, then shifted
+    back inside the image."""
+    if box[0] <= centre[0] < box[2] and box[1] <= centre[1] < box[3]:
+        return np.asarray(box, dtype=np.float64)
+    width, height = box[2] - box[0], box[3] - box[1]
+    x0 = float(np.clip(centre[0] - width / 2, 0.0, max(image_size[1] - width, 0.0)))
+    y0 = float(np.clip(centre[1] - height / 2, 0.0, max(image_size[0] - height, 0.0)))
+    return np.array([x0, y0, x0 + width, y0 + height], dtype=np.float64)
+
+
+def track(
+    backend: SamBackend,
+    embedding_at: Callable[[float], Embedding],
+    pixels: np.ndarray,
+    labels: np.ndarray,
+    click_time: float,
+    times: Sequence[float],
+    num_frames: int,
+    propagation: Propagation = "embedding",
+) -> List[TrackedMask]:
+    """Sec 4.5 on any source of embeddings: masks at the clicked time and at `times`, sorted by time.
+
+    `pixels` (N, 2) with `labels` prompt the decoder on ``embedding_at(click_time)``; then each mask
+    prompts the next frame outwards (see the module docstring for the two propagations). A lost, empty
+    mask hands on the last box.
+    """
+    if propagation not in ("embedding", "box"):
+        raise TrackingError(f"unknown propagation {propagation!r}: choose 'embedding' or 'box'")
+    click_time = check_time(click_time, "click time")
+    times = [check_time(t) for t in times]
+    clicked = embedding_at(click_time)
+    first = segment(backend, clicked, pixels, labels)
+    prompt = {"points": np.asarray(pixels).tolist(), "labels": np.asarray(labels).astype(int).tolist()}
+    visited = {click_time: TrackedMask(click_time, first, prompt)}
+    features = object_features(clicked, first) if propagation == "embedding" else None
+    for chain in propagation_chains(click_time, times, num_frames):
+        box, box_time = mask_box(first), click_time
+        for time in chain:
+            prompt = {"box": None if box is None else box.tolist(), "from_time": box_time}
+            mask = np.zeros_like(first)
+            if box is not None:
+                embedding = embedding_at(time)
+                found = None if features is None else locate_object(embedding, features)
+                points = np.zeros((0, 2))
+                if found is not None:
+                    points = np.array([found])
+                    prompt["box"] = centred_box(box, found, first.shape).tolist()
+                    prompt.update(points=points.tolist(), labels=[1])
+                mask = segment(backend, embedding, points, [1] * len(points), np.array(prompt["box"]))
+            visited[time] = TrackedMask(time, mask, prompt)
+            if mask.any():
+                box, box_time = mask_box(mask), time
+    wanted = {click_time, *times}
+    return [visited[t] for t in sorted(visited) if t in wanted]
+
+
 def track_view(
     model: "Model",
     backend: SamBackend,
@@ -253,28 +359,14 @@ def track_view(
     click_time: float,
     times: Sequence[float],
     num_frames: int,
+    propagation: Propagation = "embedding",
 ) -> List[TrackedMask]:
-    """Masks of one target view at the clicked time and at `times`, sorted by time.
+    """`track` on the SAM features the model renders for one target view (each time rendered once)."""
+    rendered: Dict[float, Embedding] = {}
 
-    The projected clicks `pixels` (N, 2) with `labels` prompt the decoder at the clicked time; then
-    the box of each mask prompts the next frame outwards (a lost, empty mask hands on the last box).
-    """
-    click_time = check_time(click_time, "click time")
-    times = [check_time(t) for t in times]
-    first = segment(backend, render_embedding(model, camera, click_time, backend), pixels, labels)
-    prompt = {"points": np.asarray(pixels).tolist(), "labels": np.asarray(labels).astype(int).tolist()}
-    visited = {click_time: TrackedMask(click_time, first, prompt)}
-    for chain in propagation_chains(click_time, times, num_frames):
-        box, box_time = mask_box(first), click_time
-        for time in chain:
-            if box is None:
-                mask = np.zeros_like(first)
-            else:
-                mask = segment(backend, render_embedding(model, camera, time, backend), np.zeros((0, 2)), [], box)
-            visited[time] = TrackedMask(
-                time, mask, {"box": None if box is None else box.tolist(), "from_time": box_time}
-            )
-            if mask.any():
-                box, box_time = mask_box(mask), time
-    wanted = {click_time, *times}
-    return [visited[t] for t in sorted(visited) if t in wanted]
+    def embedding_at(time: float) -> Embedding:
+        if time not in rendered:
+            rendered[time] = render_embedding(model, camera, time, backend)
+        return rendered[time]
+
+    return track(backend, embedding_at, pixels, labels, click_time, times, num_frames, propagation)

@@ -4,8 +4,8 @@
 point where it first meets a surface at the viewer's current time (`tracking.click_point`). From then
 on every viewer render adds the output "tracked_mask": the rendered colour with the object's mask
 highlighted, for the viewer's own camera and time. The mask comes from the stored point projected
-into that camera as a positive prompt on the rendered SAM features at the clicked time, and from box
-prompts carried frame by frame to the time slider's time (`tracking.track_view`). Nothing is computed
+into that camera as a positive prompt on the rendered SAM features at the clicked time, and from the
+prompts carried frame by frame to the time slider's time (`tracking.track_view`, embedding propagation). Nothing is computed
 while training or while no object is selected.
 
 The SAM decoder is the pipeline datamanager's backend (`GearDataManager.sam_backend`), reached

@@ -17,15 +17,23 @@ from PIL import Image
 from gear_nerfstudio.track_cli import TrackCommand
 from tests.conftest import command as run
 from gear_nerfstudio.track_metrics import MaskScore, accuracy, iou, summarise
+from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
+from gear_nerfstudio.sam.interface import Embedding
+from gear_nerfstudio.synthetic.scene import SyntheticScene
+from gear_nerfstudio.synthetic.writers import SyntheticSpec, rig_for
 from gear_nerfstudio.tracking import (
     HIT_ACCUMULATION,
     TrackingError,
+    centred_box,
     click_point,
+    locate_object,
     mask_box,
+    object_features,
     project_prompt,
     propagation_chains,
     render_embedding,
     segment,
+    track,
 )
 
 FAST_SPHERE = 3
@@ -288,6 +296,62 @@ def test_box_and_propagation_order():
     # Click at 0.5 of 5 frames; every frame between the click and a requested time is visited in order.
     assert propagation_chains(0.5, [0.0, 1.0], 5) == ([0.75, 1.0], [0.25, 0.0])
     assert propagation_chains(0.0, [0.6], 3) == ([0.5, 0.6], [])
+
+
+def test_locate_object_finds_the_inside_of_the_object_feature_region():
+    # 16x12 image on an 8-cell grid: cells are 2x2 pixels; 6 rows x 8 columns are valid.
+    features = np.zeros((4, 8, 8), dtype=np.float32)
+    features[0, :6, :8] = 1.0  # background
+    features[:, 1:4, 5:8] = 0.0
+    features[1, 1:4, 5:8] = 1.0  # the object: 3x3 cells, centre cell (2, 6)
+    features[1, 1, 5] = 0.9  # its closest-to-mean cell is not its centre
+    embedding = Embedding(features=features, image_size=(12, 16))
+    mask = np.zeros((12, 16), dtype=bool)
+    mask[2:8, 10:16] = True
+    found = object_features(embedding, mask)
+    assert found is not None
+    assert locate_object(embedding, found) == (13.0, 5.0)  # centre of cell (row 2, col 6)
+    assert object_features(embedding, np.zeros_like(mask)) is None
+    assert object_features(embedding, np.ones_like(mask)) is None
+    background_only = Embedding(features=np.where(features[1:2] > 0, 0.0, features), image_size=(12, 16))
+    background_only.features[0, :6, :8] = 1.0
+    assert locate_object(background_only, found) is None
+
+
+def test_centred_box_keeps_a_box_that_holds_the_point_and_moves_others_inside_the_image():
+    box = np.array([2.0, 2.0, 6.0, 5.0])
+    assert centred_box(box, (3.0, 4.0), (12, 16)).tolist() == [2.0, 2.0, 6.0, 5.0]
+    assert centred_box(box, (10.0, 8.0), (12, 16)).tolist() == [8.0, 6.5, 12.0, 9.5]
+    assert centred_box(box, (15.5, 11.5), (12, 16)).tolist() == [12.0, 9.0, 16.0, 12.0]
+
+
+def test_embedding_propagation_follows_a_fast_object_that_a_box_loses():
+    """On the encoder features of ground-truth frames (no NeRF): the fast sphere moves further than its
+    own size per frame, so the paper's box propagation loses it; the embedding propagation keeps it.
+    The slow sphere stays tracked by both."""
+    backend = BuiltinSamBackend()
+    spec = SyntheticSpec(dataset="n3d", width=64, height=48, frames=6, cameras=1)
+    scene, camera = SyntheticScene(), rig_for(spec)[0]
+    renders = [scene.render(camera, frame) for frame in range(spec.frames)]
+    embeddings = {frame / 5: backend.encode(render.rgb) for frame, render in enumerate(renders)}
+    times = sorted(embeddings)
+    results = {}
+    for object_id in (2, FAST_SPHERE):
+        ids = renders[0].object_ids == object_id
+        rows, cols = np.nonzero(ids)
+        click = np.array([[cols.mean() + 0.5, rows.mean() + 0.5]])
+        for propagation in ("box", "embedding"):
+            masks = track(backend, embeddings.__getitem__, click, np.array([1]), 0.0, times, 6, propagation)
+            assert [m.time for m in masks] == times
+            scores = [iou(m.mask, renders[round(m.time * 5)].object_ids == object_id) for m in masks[1:]]
+            results[object_id, propagation] = float(np.mean(scores))
+            if propagation == "embedding":
+                assert all("points" in m.prompt and m.prompt["from_time"] < m.time for m in masks[1:])
+    assert results[FAST_SPHERE, "box"] < 0.2
+    assert results[FAST_SPHERE, "embedding"] > 0.45
+    assert results[2, "box"] > 0.7 and results[2, "embedding"] > 0.7
+    with pytest.raises(TrackingError, match="unknown propagation"):
+        track(backend, embeddings.__getitem__, click, np.array([1]), 0.0, times, 6, "flow")
 
 
 def test_metrics_match_torchmetrics():
