@@ -6,12 +6,13 @@ whose SAM feature map is rendered from the 4D embedding (Eq 8) and decoded with 
 as the prompt. Masks for novel time steps: the bounding box of the mask at time t prompts the decoder
 on the rendered features at the neighbouring frame t + 1 (or t - 1), frame by frame.
 
-Propagation "embedding" (ours, the default) adds the 4D embedding to that box: the object's feature,
-the mean rendered SAM feature under the clicked-time mask, is looked up in the rendered features at
-t + 1 (`locate_object`: a point inside the cells that are closer to it than to the rest of the image)
-and prompts as a positive point, with the box of the mask at t, moved onto that point when it does not
-already hold it. A box alone loses an object that moves further than its own size between frames; the
-paper's box-only propagation remains as "box".
+Propagation "embedding" (ours, the default) checks each box result with the 4D embedding: the object's
+feature is the mean rendered SAM feature under the clicked-time mask. When the mask that the box gives at
+t + 1 has a mean feature closer to the background's than to the object's, the object has left the box;
+it is then looked up in the rendered features at t + 1 (`locate_object`: a point inside the cells closer
+to the object's feature than to the rest of the image), and that point prompts as a positive point with
+the box moved onto it. A box alone loses an object that moves further than its own size between frames;
+the paper's box-only propagation remains as "box".
 
 Depth choice: the *median termination depth*. The click ray is sampled densely (CLICK_SAMPLES
 uniform samples between the model's near and far planes) and the field's densities give the
@@ -52,7 +53,7 @@ CLICK_SAMPLES = 256
 """Uniform samples along a click ray for its median termination depth."""
 PROJECTABLE = (CameraType.PERSPECTIVE.value, CameraType.FISHEYE.value)
 Propagation = Literal["embedding", "box"]
-"""How a mask at t prompts t +- 1: its box moved onto the object's embedding match (ours), or its box."""
+"""How a mask at t prompts t +- 1: its box, re-found by the object's embedding when lost (ours), or its box."""
 
 
 class TrackingError(ValueError):
@@ -272,6 +273,15 @@ def object_features(embedding: Embedding, mask: np.ndarray) -> Optional[Tuple[np
     return features[inside].mean(axis=0), features[~inside].mean(axis=0)
 
 
+def holds_object(embedding: Embedding, mask: np.ndarray, features: Tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether a mask's mean feature is closer to the object's feature than to the background's."""
+    inside = object_features(embedding, mask)
+    if inside is None:
+        return False
+    obj, background = features
+    return float(np.square(inside[0] - obj).sum()) < float(np.square(inside[0] - background).sum())
+
+
 def locate_object(embedding: Embedding, features: Tuple[np.ndarray, np.ndarray]) -> Optional[Tuple[float, float]]:
     """Pixel (x, y) inside the object at another time, from its feature: among the cells closer to the
     object's feature than to the background's, take the 8-connected region holding the closest cell and
@@ -336,13 +346,13 @@ def track(
             mask = np.zeros_like(first)
             if box is not None:
                 embedding = embedding_at(time)
-                found = None if features is None else locate_object(embedding, features)
-                points = np.zeros((0, 2))
+                mask = segment(backend, embedding, np.zeros((0, 2)), [], box)
+                found = None
+                if features is not None and not holds_object(embedding, mask, features):
+                    found = locate_object(embedding, features)
                 if found is not None:
-                    points = np.array([found])
-                    prompt["box"] = centred_box(box, found, first.shape).tolist()
-                    prompt.update(points=points.tolist(), labels=[1])
-                mask = segment(backend, embedding, points, [1] * len(points), np.array(prompt["box"]))
+                    prompt.update(box=centred_box(box, found, first.shape).tolist(), points=[list(found)], labels=[1])
+                    mask = segment(backend, embedding, np.array([found]), [1], np.array(prompt["box"]))
             visited[time] = TrackedMask(time, mask, prompt)
             if mask.any():
                 box, box_time = mask_box(mask), time

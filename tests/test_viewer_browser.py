@@ -41,7 +41,7 @@ VIEWER_FOV = math.radians(75.0)
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """120 iterations of the single-gear preset without learning-rate warm-up: every point has the full
+    """400 iterations of the single-gear preset without learning-rate warm-up: every point has the full
     temporal resolution, so motion shows after a short run (the gears of gear-nerf-small only get it
     through the Sec 4.3 updates, which need a longer run)."""
     root = tmp_path_factory.mktemp("viewer")
@@ -49,7 +49,7 @@ def trained(tmp_path_factory):
     ns(
         "ns-train", "gear-nerf-baseline", "--output-dir", str(root / "runs"),
         "--experiment-name", "tiny", "--timestamp", "run", "--machine.device-type", "cpu", "--vis", "tensorboard",
-        "--max-num-iterations", "120", "--steps-per-eval-all-images", "100000",
+        "--max-num-iterations", "400", "--steps-per-eval-all-images", "100000",
         "--pipeline.datamanager.train-num-rays-per-batch", "512", "--optimizers.fields.scheduler.warm-up-end", "0",
         "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache"), cwd=root,
     )
