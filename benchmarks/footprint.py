@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import List, Tuple
@@ -29,9 +28,9 @@ from typing import List, Tuple
 import torch
 import tyro
 
+from environment import BIN, command_environment
 from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
-BIN = Path(sys.executable).parent
 
 
 @dataclasses.dataclass
@@ -93,10 +92,9 @@ class FootprintBenchmark:
             "--steps-per-eval-batch", "1000000", "neural-3d-video-data", "--data", str(scene),
             "--cache-dir", str(self.output / "cache"),
         ]
-        env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
         start = time.perf_counter()
         with open(runs / f"{key}-{run.method}.log", "w") as log:
-            process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+            process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=command_environment())
             _, status, usage = os.wait4(process.pid, 0)
         seconds = time.perf_counter() - start
         if os.waitstatus_to_exitcode(status) != 0:

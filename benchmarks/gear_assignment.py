@@ -12,9 +12,7 @@ Prints a markdown table (and writes it to `<output>/gear_assignment.md`).
 from __future__ import annotations
 
 import dataclasses
-import os
 import subprocess
-import sys
 from pathlib import Path
 from typing import List, Optional, Tuple
 
@@ -22,6 +20,7 @@ import numpy as np
 import torch
 import tyro
 
+from environment import BIN, command_environment
 from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 
@@ -61,12 +60,11 @@ class GearAssignmentBenchmark:
         )
         write_synthetic_scene(scene, spec)
         runs = self.output / "runs"
-        bin_dir = Path(sys.executable).parent
         runs.mkdir(parents=True, exist_ok=True)
         with open(runs / f"{motion}.log", "w") as log:  # the trainer's log, with one line per gear update
             subprocess.run(
                 [
-                    str(bin_dir / "ns-train"), self.method, "--output-dir", str(runs), "--experiment-name", motion,
+                    str(BIN / "ns-train"), self.method, "--output-dir", str(runs), "--experiment-name", motion,
                     "--timestamp", "run", "--max-num-iterations", str(self.iterations), "--machine.device-type", "cpu",
                     "--vis", "tensorboard", "--pipeline.model.gear-updates.mask-source", self.mask_source,
                     "--pipeline.model.gear-updates.motion-threshold", str(self.motion_threshold),
@@ -75,7 +73,7 @@ class GearAssignmentBenchmark:
                 check=True,
                 stdout=log,
                 stderr=subprocess.STDOUT,
-                env={**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"},
+                env=command_environment(),
             )
         return self.measure(runs / motion / self.method / "run" / "config.yml", scene)
 

@@ -71,6 +71,8 @@ from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import tyro
 
+from environment import command_environment
+
 TRAIN_CHILD = "_train"
 """First argument of the child process that runs ``ns-train`` with the timing hooks."""
 
@@ -228,12 +230,10 @@ class SpeedAccuracyBenchmark:
         run_dir.mkdir(parents=True)
         timing_path = run_dir / "benchmark_timing.json"
         print(f"[speed_accuracy] {scene} / {method}: ns-train {shlex.join(command)}", flush=True)
-        bin_dir = Path(sys.executable).parent
-        env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
         with open(run_dir / "train.log", "w") as log:
             child = subprocess.Popen(
                 [sys.executable, str(Path(__file__).resolve()), TRAIN_CHILD, str(timing_path), *command],
-                stdout=log, stderr=subprocess.STDOUT, env=env,
+                stdout=log, stderr=subprocess.STDOUT, env=command_environment(),
             )
             _, status, usage = os.wait4(child.pid, 0)
             child.returncode = os.waitstatus_to_exitcode(status)

@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -30,7 +28,9 @@ import numpy as np
 import tyro
 from scipy import ndimage
 
+from environment import BIN, command_environment
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
+from gear_nerfstudio.sam.interface import Embedding
 from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from gear_nerfstudio.track_metrics import accuracy, iou
 from gear_nerfstudio.tracking import track
@@ -84,6 +84,7 @@ class TrackingBenchmark:
             "|---|---|---|---|---|---|---|",
         ]
         details = []
+        held_out = self.held_out_embeddings(scene)
         for object_id in self.objects:
             x, y = self.click_pixel(scene, object_id)
             for propagation in PROPAGATIONS:
@@ -95,7 +96,7 @@ class TrackingBenchmark:
                 )
                 summary = json.loads((result_dir / "tracking.json").read_text())
                 metrics = summary["metrics"]
-                reference = self.reference(scene, summary, object_id, click_time, propagation)
+                reference = self.reference(held_out, summary, object_id, click_time, propagation)
                 name = f"{OBJECT_NAMES.get(object_id, object_id)} ({object_id})"
                 lines.append(
                     f"| {name} | {propagation} | Gear-NeRF rendered SAM features (ns-gear-track) "
@@ -123,15 +124,12 @@ class TrackingBenchmark:
         (self.output / "tracking.md").write_text(table)
 
     def ns(self, *args: str, log: Optional[Path] = None) -> None:
-        bin_dir = Path(sys.executable).parent
-        env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
+        command = [str(BIN / args[0]), *args[1:]]
         if log is None:
-            subprocess.run([str(bin_dir / args[0]), *args[1:]], check=True, env=env)
+            subprocess.run(command, check=True, env=command_environment())
             return
         with open(log, "w") as handle:
-            subprocess.run(
-                [str(bin_dir / args[0]), *args[1:]], check=True, env=env, stdout=handle, stderr=subprocess.STDOUT
-            )
+            subprocess.run(command, check=True, env=command_environment(), stdout=handle, stderr=subprocess.STDOUT)
 
     def train(self, scene: Path) -> Path:
         runs = self.output / "runs"
@@ -154,18 +152,31 @@ class TrackingBenchmark:
         row, col = np.unravel_index(int(np.argmax(depth)), depth.shape)
         return col + 0.5, row + 0.5
 
-    def reference(self, scene: Path, summary: Dict, object_id: int, click_time: float, propagation: str) -> str:
-        """mIoU | Acc. | t-mIoU | t-Acc. of `track` with the same projected click on cam00's real frames."""
+    @staticmethod
+    def held_out_embeddings(scene: Path) -> Tuple[BuiltinSamBackend, List[Embedding], np.ndarray]:
+        """The SAM backend, its encoder's embeddings of cam00's real frames, and cam00's object ids."""
         import av
 
         with av.open(str(scene / "cam00.mp4")) as container:
             frames = [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
-        ids = np.load(scene / "ground_truth" / "cam00.npz")["object_ids"]
         backend = BuiltinSamBackend()
+        ids = np.load(scene / "ground_truth" / "cam00.npz")["object_ids"]
+        return backend, [backend.encode(frame) for frame in frames], ids
+
+    def reference(
+        self,
+        held_out: Tuple[BuiltinSamBackend, List[Embedding], np.ndarray],
+        summary: Dict,
+        object_id: int,
+        click_time: float,
+        propagation: str,
+    ) -> str:
+        """mIoU | Acc. | t-mIoU | t-Acc. of `track` with the same projected click on cam00's real frames."""
+        backend, embeddings, ids = held_out
         clicked = next(record for record in summary["masks"] if record["time"] == click_time)
         masks = track(
             backend,
-            lambda t: backend.encode(frames[round(t * (self.frames - 1))]),
+            lambda t: embeddings[round(t * (self.frames - 1))],
             np.array(clicked["prompt"]["points"]),
             np.array(clicked["prompt"]["labels"]),
             click_time,

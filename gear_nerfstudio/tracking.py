@@ -263,10 +263,15 @@ def mask_cells(mask: np.ndarray, grid_size: int) -> np.ndarray:
     return mask[rows, cols]
 
 
+def valid_cell_features(embedding: Embedding) -> np.ndarray:
+    """Features (rows * cols, C) of the cells that cover the image, row-major (as `cell_centres`)."""
+    rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
+    return embedding.features[:, :rows, :cols].reshape(embedding.features.shape[0], -1).T
+
+
 def object_features(embedding: Embedding, mask: np.ndarray) -> Optional[Tuple[np.ndarray, np.ndarray]]:
     """Mean feature (C,) of the cells under a mask and of the other valid cells; None when either is empty."""
-    rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
-    features = embedding.features[:, :rows, :cols].reshape(embedding.features.shape[0], -1).T
+    features = valid_cell_features(embedding)
     inside = mask_cells(mask, embedding.grid_size).reshape(-1)
     if inside.all() or not inside.any():
         return None
@@ -289,7 +294,7 @@ def locate_object(embedding: Embedding, features: Tuple[np.ndarray, np.ndarray])
     """
     obj, background = features
     rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
-    cells = embedding.features[:, :rows, :cols].reshape(embedding.features.shape[0], -1).T
+    cells = valid_cell_features(embedding)
     to_object = np.square(cells - obj).sum(axis=1)
     candidates = (to_object < np.square(cells - background).sum(axis=1)).reshape(rows, cols)
     if not candidates.any():
