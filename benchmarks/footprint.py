@@ -29,6 +29,7 @@ import torch
 import tyro
 
 from environment import BIN, command_environment
+from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 
@@ -45,7 +46,7 @@ class Run:
 class FootprintBenchmark:
     output: Path = Path("outputs/footprint")
     iterations: int = 600
-    """Iterations on the static and mixed scenes (the small preset's first gear update is at 2 epochs)."""
+    """Iterations on the static and mixed scenes (the gear-update schedule is scaled to them)."""
     long_iterations: int = 300
     """Iterations on the long video (enough to cycle through the datamanager's image subsets)."""
     long_frames: int = 300
@@ -87,7 +88,8 @@ class FootprintBenchmark:
         runs.mkdir(parents=True, exist_ok=True)
         command = [
             str(BIN / "ns-train"), run.method, "--output-dir", str(runs), "--experiment-name", key,
-            "--timestamp", "run", "--max-num-iterations", str(run.iterations), "--machine.device-type", "cpu",
+            "--timestamp", "run", "--max-num-iterations", str(run.iterations), *schedule_options(run.iterations),
+            "--machine.device-type", "cpu",
             "--vis", "tensorboard", "--steps-per-eval-all-images", "1000000", "--steps-per-eval-image", "1000000",
             "--steps-per-eval-batch", "1000000", "neural-3d-video-data", "--data", str(scene),
             "--cache-dir", str(self.output / "cache"),

@@ -1,56 +1,50 @@
-"""Speed / accuracy benchmark: Gear-NeRF against its baselines on synthetic scenes with ground truth.
+"""Speed / accuracy benchmark: Gear-NeRF against its baselines and ablations, at several scene sizes and on
+real multi-view video, with seeds.
 
-One command trains and evaluates every method on every scene, one after the other on this machine:
+One command trains and evaluates every (scene, method, seed), one run after the other on this machine:
 
     .venv/bin/python benchmarks/speed_accuracy.py --output outputs/speed_accuracy --results benchmarks/results
 
-Scenes (`gear_nerfstudio.synthetic`, Neural 3D Video format, held-out camera cam00): "static" (one static
-sphere), "slow" and "fast" (a static and a slow / fast sphere), "mixed" (static background, a static, a
-slow and a fast sphere).
+Scenes (``SCENES``): synthetic scenes with ground truth (``gear_nerfstudio.synthetic``, Neural 3D Video format,
+held-out camera cam00; moving pixels from the ground-truth motion) at two sizes, and the real capture
+``panoptic_basketball`` (Technicolor layout, held-out camera 06, which has foreground masks of the moving
+people; ``../shared/data/real/SOURCES.md``).
 
-Methods, all as `ns-train <preset> <overrides>` on the same base preset (`gear-nerf-small` on the CPU,
-the paper preset `gear-nerf` with `--device cuda`), so that everything but the compared setting is equal:
+Methods (``METHODS``), all ``ns-train <preset> <overrides>`` on the same base preset (``gear-nerf-small`` on
+the CPU, ``gear-nerf`` with ``--device cuda``) with the same data, iterations, batch and losses, except the one
+thing each changes:
 
-* ``gear-nerf``: the preset itself (N_gear = 4, SAM embedding, gear updates).
-* ``kplanes``: N_gear = 1 with uniform sampling at the preset's n (plain K-Planes: the single gear has
-  one row per frame); no SAM features (K-Planes has no L_SAM).
-* ``uniform-128``: ``kplanes`` with 128 uniform samples per ray.
-* ``naive-medium``: "naive temporal sampling" (paper), a single volume with medium temporal resolution:
-  ``kplanes`` with ``--pipeline.model.time-resolutions ceil(T / 2)``, so the T frames are interpolated
-  between ceil(T / 2) rows of the space-time planes.
-* ``naive-dense``: the same with dense temporal resolution, one row per frame (T rows). With N_gear = 1
-  this is exactly the ``kplanes`` configuration, so it is not trained twice: its rows reuse that run.
-* ``no-embedding``: Gear-NeRF "w/o embedding" (paper): no SAM features (no L_SAM), upshift masks from
-  the loss map (``mask_source loss_threshold``) instead of the SAM decoder.
+* ``gear-nerf``: the preset (N_gear = 4, gear updates, split sampling, L_SAM).
+* ``kplanes``: N_gear = 1 (plain K-Planes: one volume with one row per frame, n uniform samples), with L_SAM as
+  Gear-NeRF: the main baseline.
+* ablations: ``no-split`` (gears and updates, but no extra samples: split base 1), ``no-updates`` (no gear
+  update: every point stays in gear 1), ``gear-nerf-no-sam`` and ``kplanes-no-sam`` (no L_SAM; the upshift
+  masks still come from the SAM decoder on the ground-truth frames' embeddings), and the paper's
+  baselines ``uniform-128``, ``naive-medium`` and ``no-embedding`` (see ``method_overrides``).
+
+Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...) for ``--main-methods``, one seed for the others.
 
 What is measured, and how:
 
 * Training: each run is a child process running nerfstudio's ``ns-train`` entry point, with the evaluation
-  inside the training loop turned off (``--steps-per-eval-* 0``) and a checkpoint every
-  ``iterations / checkpoints`` steps (all kept). The child records, at each checkpoint, the training time:
-  seconds since ``Trainer.train`` started, minus the time spent writing earlier checkpoints (data loading,
-  SAM encoding and model set-up before the loop are not counted; gear updates are, being training), in
-  wall-clock seconds (the plot, the equal-time budget) and in CPU seconds of the training process (the
-  tables; less sensitive to other load on a shared machine).
-* Peak memory: peak resident set size of the training process (``os.wait4`` on the child, ``ru_maxrss``)
-  and, on CUDA, ``torch.cuda.max_memory_allocated`` in that process.
-* Held-out metrics, per checkpoint: every frame of the held-out camera is rendered with
-  ``model.get_outputs_for_camera`` and scored with the model's ``get_image_metrics_and_images``; PSNR and
-  SSIM are the means over the frames (as ``ns-eval``). LPIPS only when torchvision's AlexNet weights are
-  already on disk (``lpips_weights_path``); otherwise the table says "missing". No metric is estimated.
-* Render FPS: held-out frames divided by the wall time of their ``get_outputs_for_camera`` calls (after one
-  untimed warm-up render per run; CUDA synchronised).
-* Samples per ray: mean of the model output ``num_samples`` over all held-out pixels.
-* Parameters: all model parameters, and those in use (all but the space-time planes of gears that never
-  received a training sample, ``GearField.parameters_in_use``).
-* Equal iterations: the last checkpoint of every run (every method trains ``iterations`` steps).
-* Equal wall-clock time: per scene, a time budget (``--time-budget``; default: the shortest total
-  training time among the methods of that scene); each method is scored at its last checkpoint whose
-  training time does not exceed the budget (more checkpoints give a finer match).
+  inside the training loop turned off and a checkpoint every ``iterations / checkpoints`` steps. The child
+  records, at each checkpoint, the training time since ``Trainer.train`` started, minus the time spent
+  writing earlier checkpoints (data loading, SAM encoding and set-up are not counted; gear updates are), in
+  wall-clock seconds and in CPU seconds of the training process.
+* Held-out metrics, per checkpoint: ``--eval-frames`` frames of the held-out camera, evenly spaced over the
+  video, rendered with ``model.get_outputs_for_camera`` and scored with the model's
+  ``get_image_metrics_and_images`` (PSNR, SSIM; LPIPS only when its weights are on disk, else "missing").
+* Gear maps, per checkpoint: ``model.visible_gear_levels`` (Eq 5 at the surface each pixel sees) on the same
+  frames: the share of moving pixels at gear >= 2 and of static pixels at gear 1 (synthetic: ground-truth
+  motion > 0; real: the foreground masks).
+* Render FPS, samples per ray, parameters (all, and in use), gear updates run (from the checkpoint), peak RSS.
+* Equal iterations: the last checkpoint. Equal wall-clock time (the headline): per scene, a time budget (the
+  shortest mean total training time of the main methods, or ``--time-budget``); each run is scored at its
+  last checkpoint within the budget. Means and sample standard deviations are over seeds.
 
-Writes `<output>/speed_accuracy.md` (tables, targets, command, machine, date), `<output>/speed_accuracy.png`
-(PSNR against training time, one curve per method, one panel per scene) and `<output>/records.json`
-(every measurement); with ``--results DIR`` the markdown and the plot are copied there too.
+Writes ``<output>/speed_accuracy.md`` (tables, targets, command, machine, date), ``<output>/speed_accuracy.png``
+(PSNR against training time per scene, mean and range over seeds) and ``<output>/records.json``; with
+``--results DIR`` the markdown and the plot are copied there too.
 """
 
 from __future__ import annotations
@@ -67,100 +61,184 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Optional, Tuple
+from typing import Any, Callable, Dict, List, Literal, Optional, Tuple
 
+import numpy as np
 import tyro
 
 from environment import command_environment
+from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 
 TRAIN_CHILD = "_train"
 """First argument of the child process that runs ``ns-train`` with the timing hooks."""
 
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+"""The real captures (``../shared/data/real`` next to the repository)."""
+
 METHODS: Dict[str, str] = {
     "gear-nerf": "Gear-NeRF",
-    "kplanes": "plain K-Planes (N_gear = 1, uniform n)",
-    "uniform-128": "uniform, 128 samples (N_gear = 1)",
-    "naive-medium": "naive temporal, medium (T/2 rows)",
-    "naive-dense": "naive temporal, dense (T rows)",
-    "no-embedding": "Gear-NeRF w/o embedding",
+    "kplanes": "plain K-Planes (N_gear = 1) with L_SAM",
+    "no-split": "Gear-NeRF w/o split sampling",
+    "no-updates": "Gear-NeRF w/o gear updates",
+    "gear-nerf-no-sam": "Gear-NeRF w/o L_SAM",
+    "kplanes-no-sam": "plain K-Planes w/o L_SAM",
+    "uniform-128": "K-Planes, 128 uniform samples, with L_SAM",
+    "naive-medium": "naive temporal, medium (T/2 rows), with L_SAM",
+    "no-embedding": "Gear-NeRF w/o embedding (loss-threshold masks, no L_SAM)",
 }
-"""Method keys and their labels in the table and the plot."""
-
-SCENES: Tuple[str, ...] = ("static", "slow", "fast", "mixed")
+"""Method keys and their labels in the tables and the plot."""
 
 
 def method_overrides(method: str, frames: int) -> List[str]:
     """``ns-train`` overrides of a method on top of the base preset."""
-    no_sam = ["--pipeline.datamanager.use-sam-features", "False"]
-    single = ["--pipeline.model.num-gears", "1", *no_sam]
-    if method == "gear-nerf":
-        return []
-    if method in ("kplanes", "naive-dense"):  # one gear = one row per frame (gear_field.temporal_resolutions)
-        return single
-    if method == "uniform-128":
-        return [*single, "--pipeline.model.num-samples", "128"]
-    if method == "naive-medium":
-        return [*single, "--pipeline.model.time-resolutions", str(max(1, math.ceil(frames / 2)))]
-    if method == "no-embedding":
-        return [*no_sam, "--pipeline.model.gear-updates.mask-source", "loss_threshold"]
-    raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    no_sam = ["--pipeline.datamanager.use-sam-features", "False", "--pipeline.model.gear-updates.sam-loss-weight", "0"]
+    single = ["--pipeline.model.num-gears", "1"]
+    overrides = {
+        "gear-nerf": [],
+        "kplanes": single,
+        "no-split": ["--pipeline.model.split-base", "1"],
+        "no-updates": ["--pipeline.model.gear-updates.enabled", "False"],
+        "gear-nerf-no-sam": no_sam,
+        "kplanes-no-sam": [*single, *no_sam],
+        "uniform-128": [*single, "--pipeline.model.num-samples", "128"],
+        "naive-medium": [*single, "--pipeline.model.time-resolutions", str(max(1, math.ceil(frames / 2)))],
+        "no-embedding": [*no_sam, "--pipeline.model.gear-updates.mask-source", "loss_threshold"],
+    }
+    if method not in overrides:
+        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    return overrides[method]
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """A benchmark scene: how ns-train reads it and which held-out pixels move."""
+
+    name: str
+    description: str
+    frames: int
+    held_out: str
+    synthetic: Optional[Dict[str, Any]] = None
+    """SyntheticSpec fields of a generated scene (written under <output>/scenes/<name>); None: real."""
+    data: Optional[Path] = None
+    """A real capture in the Technicolor layout."""
+    masks: Optional[Path] = None
+    """Foreground masks of a real capture: <camera>/<frame:05d>.png."""
+    parser_options: Tuple[str, ...] = ()
+
+    def folder(self, output: Path) -> Path:
+        return output / "scenes" / self.name if self.synthetic else self.data
+
+    def write(self, output: Path) -> None:
+        """Generate a synthetic scene (kept when one of the same spec is there)."""
+        if not self.synthetic:
+            return
+        from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+
+        spec = SyntheticSpec(dataset="n3d", **self.synthetic)
+        scene = self.folder(output)
+        info = scene / "ground_truth" / "scene.json"
+        if info.is_file() and json.loads(info.read_text())["spec"] == json.loads(json.dumps(spec.__dict__)):
+            return
+        for stale in (scene, output / "cache" / self.name):
+            shutil.rmtree(stale, ignore_errors=True)
+        write_synthetic_scene(scene, spec)
+
+    def dataparser(self, output: Path) -> List[str]:
+        parser = "neural-3d-video-data" if self.synthetic else "technicolor-data"
+        return [
+            parser, "--data", str(self.folder(output)), "--held-out-camera", self.held_out,
+            "--cache-dir", str(output / "cache" / self.name), *self.parser_options,
+        ]
+
+    def moving(self, output: Path) -> Callable[[int, int], np.ndarray]:
+        """(frame index in the window, dataset frame number) -> (H, W) bool map of the held-out camera's moving
+        pixels."""
+        if self.synthetic:
+            motion = np.load(self.folder(output) / "ground_truth" / f"{self.held_out}.npz")["motion"]
+            return lambda index, number: motion[index] > 0
+        from PIL import Image
+
+        return lambda index, number: (
+            np.array(Image.open(self.masks / self.held_out / f"{number:05d}.png").convert("L")) > 127
+        )
+
+
+SCENES: Dict[str, Scene] = {
+    "mixed": Scene(
+        "mixed", "synthetic, 64x48, 6 cameras, 6 frames: textured static room, a static, a slow and a fast sphere",
+        6, "cam00", synthetic=dict(width=64, height=48, frames=6, cameras=6, motion="mixed"),
+    ),
+    "mixed-large": Scene(
+        "mixed-large", "synthetic, 160x120, 12 cameras, 24 frames: the same content", 24, "cam00",
+        synthetic=dict(width=160, height=120, frames=24, cameras=12, motion="mixed"),
+    ),
+    "static": Scene(
+        "static", "synthetic, 64x48, 6 cameras, 6 frames, nothing moves", 6, "cam00",
+        synthetic=dict(width=64, height=48, frames=6, cameras=6, motion="static"),
+    ),
+    "panoptic": Scene(
+        "panoptic", "real: CMU Panoptic basketball, 320x180, 16 cameras (15 trained), 20 frames", 20, "06",
+        data=REAL / "panoptic_basketball", masks=REAL / "panoptic_basketball_masks",
+        parser_options=("--near", "0.3", "--far", "7"),
+    ),
+}
+"""Scenes by name. The real capture holds out camera 06 (not the usual 10) because 10 has no masks."""
 
 
 @dataclasses.dataclass
 class SpeedAccuracyBenchmark:
-    """Train and evaluate Gear-NeRF and its baselines on synthetic scenes; write a table and a plot."""
+    """Train and evaluate Gear-NeRF, its baseline and ablations; write tables and a plot."""
 
     output: Path = Path("outputs/speed_accuracy")
     """Working folder: scenes, runs, logs, records.json, speed_accuracy.md / .png."""
     results: Optional[Path] = None
     """Also copy speed_accuracy.md and speed_accuracy.png here (e.g. benchmarks/results)."""
-    scenes: Tuple[str, ...] = SCENES
-    """Motion kinds of the synthetic scenes: static, slow, fast, mixed."""
-    methods: Tuple[str, ...] = tuple(METHODS)
-    """Methods to run on the mixed scene, where the targets are (see the module docstring)."""
-    other_methods: Optional[Tuple[str, ...]] = None
-    """Methods to run on the other scenes; None: the same as ``methods``."""
-    iterations: int = 2000
-    """Training iterations of every method (the cosine schedules end there)."""
-    checkpoints: int = 10
+    scenes: Tuple[str, ...] = ("mixed", "mixed-large", "panoptic")
+    """Scenes to run (``SCENES``)."""
+    main_methods: Tuple[str, ...] = ("gear-nerf", "kplanes")
+    """Methods run with every seed; the equal-time budget is the shortest of their mean training times."""
+    ablations: Tuple[str, ...] = ("no-split", "no-updates", "gear-nerf-no-sam", "kplanes-no-sam")
+    """Methods run with the first seed only."""
+    ablation_scenes: Tuple[str, ...] = ("mixed", "panoptic")
+    """Scenes on which the ablations run."""
+    seeds: int = 3
+    """Seeds of the main methods (``--machine.seed`` 42, 43, ...)."""
+    iterations: Optional[int] = None
+    """Training iterations of every run, with the gear-update schedule scaled to them as the presets scale theirs
+    (``schedule_options``); default: the base preset's own, with its own schedule."""
+    checkpoints: int = 8
     """Evaluated checkpoints per run, evenly spaced (the last is the final one)."""
-    width: int = 64
-    height: int = 48
-    frames: int = 8
-    """Frames T of every scene."""
-    cameras: int = 8
-    """Cameras of every scene (cam00 is held out)."""
+    eval_frames: int = 6
+    """Held-out frames scored per checkpoint, evenly spaced over the video (all when the video is shorter)."""
     device: Literal["cpu", "cuda"] = "cpu"
     """cpu: the CPU preset gear-nerf-small; cuda: the paper preset gear-nerf."""
     preset: Optional[str] = None
     """Base preset; default gear-nerf-small on cpu, gear-nerf on cuda."""
     time_budget: Optional[float] = None
-    """Equal-time budget in seconds; default per scene: the shortest total training time of its methods."""
+    """Equal-time budget in seconds for every scene; default per scene (see ``main_methods``)."""
     reuse_runs: bool = False
     """Skip training a run whose record (same command) is already in the output folder."""
 
     def main(self) -> None:
         if self.device == "cpu":
             os.environ["CUDA_VISIBLE_DEVICES"] = ""  # the held-out renders run on the CPU as well
-        for method in (*self.methods, *(self.other_methods or ())):
-            method_overrides(method, self.frames)  # fail early on an unknown name
+        for name in self.scenes:
+            if name not in SCENES:
+                raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)}")
+            for method in (*self.main_methods, *self.ablations):
+                method_overrides(method, SCENES[name].frames)  # fail early on an unknown name
         self.output.mkdir(parents=True, exist_ok=True)
         started = datetime.datetime.now(datetime.timezone.utc)
         load_before = os.getloadavg()
-        records: Dict[str, Dict[str, Dict[str, Any]]] = {}
-        for scene in self.scenes:
-            scene_dir = self.write_scene(scene)
-            records[scene] = {}
-            trained: Dict[Tuple[str, ...], str] = {}
-            methods = self.methods if scene == "mixed" or self.other_methods is None else self.other_methods
-            for method in methods:
-                overrides = tuple(method_overrides(method, self.frames))
-                if overrides in trained:  # same configuration as a method already run: same run
-                    records[scene][method] = {**records[scene][trained[overrides]], "same_run_as": trained[overrides]}
-                    continue
-                trained[overrides] = method
-                records[scene][method] = self.run(scene, scene_dir, method, list(overrides))
-                (self.output / "records.json").write_text(json.dumps(records, indent=1))
+        records: List[Dict[str, Any]] = []
+        for name in self.scenes:
+            scene = SCENES[name]
+            scene.write(self.output)
+            ablations = self.ablations if name in self.ablation_scenes else ()
+            for method in (*self.main_methods, *ablations):
+                for seed in range(42, 42 + (self.seeds if method in self.main_methods else 1)):
+                    records.append(self.run(scene, method, seed))
+                    (self.output / "records.json").write_text(json.dumps(records, indent=1))
         finished = datetime.datetime.now(datetime.timezone.utc)
         context = {
             "command": "python benchmarks/speed_accuracy.py " + shlex.join(sys.argv[1:]),
@@ -169,9 +247,9 @@ class SpeedAccuracyBenchmark:
             "machine": machine_description(self.device),
             "load": f"1-minute load average {load_before[0]:.2f} at the start, {os.getloadavg()[0]:.2f} at the end",
         }
-        markdown = self.report(records, context)
+        markdown = Report(self, records).markdown(context)
         (self.output / "speed_accuracy.md").write_text(markdown)
-        self.plot(records, self.output / "speed_accuracy.png")
+        Report(self, records).plot(self.output / "speed_accuracy.png")
         print(markdown)
         if self.results is not None:
             self.results.mkdir(parents=True, exist_ok=True)
@@ -183,53 +261,47 @@ class SpeedAccuracyBenchmark:
     def base_preset(self) -> str:
         return self.preset or ("gear-nerf" if self.device == "cuda" else "gear-nerf-small")
 
-    def write_scene(self, motion: str) -> Path:
-        """The synthetic scene of this motion kind (rewritten unless one of the same size is there)."""
-        from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+    def preset_iterations(self) -> int:
+        if self.iterations is not None:
+            return self.iterations
+        from nerfstudio.configs.method_configs import all_methods
 
-        spec = SyntheticSpec(
-            dataset="n3d", width=self.width, height=self.height, frames=self.frames, cameras=self.cameras, motion=motion
-        )
-        scene = self.output / "scenes" / motion
-        info = scene / "ground_truth" / "scene.json"
-        if info.is_file() and json.loads(info.read_text())["spec"] == json.loads(json.dumps(spec.__dict__)):
-            return scene
-        for stale in (scene, self.output / "cache" / motion):
-            shutil.rmtree(stale, ignore_errors=True)
-        write_synthetic_scene(scene, spec)
-        return scene
+        return all_methods[self.base_preset].max_num_iterations
 
-    def train_command(self, scene: str, scene_dir: Path, method: str, overrides: List[str]) -> List[str]:
+    def train_command(self, scene: Scene, method: str, seed: int) -> List[str]:
         """Arguments of ``ns-train`` for one run."""
-        steps_per_save = max(1, self.iterations // max(1, self.checkpoints))
+        iterations = self.preset_iterations()
+        steps_per_save = max(1, iterations // max(1, self.checkpoints))
         return [
             self.base_preset,
-            "--output-dir", str(self.output / "runs"), "--experiment-name", scene, "--timestamp", method,
-            "--max-num-iterations", str(self.iterations),
-            "--optimizers.fields.scheduler.max-steps", str(self.iterations),
-            "--optimizers.proposal-networks.scheduler.max-steps", str(self.iterations),
+            "--output-dir", str(self.output / "runs"), "--experiment-name", scene.name,
+            "--timestamp", f"{method}-seed{seed}", "--machine.seed", str(seed),
+            "--max-num-iterations", str(iterations),
+            "--optimizers.fields.scheduler.max-steps", str(iterations),
+            "--optimizers.proposal-networks.scheduler.max-steps", str(iterations),
             "--steps-per-save", str(steps_per_save), "--save-only-latest-checkpoint", "False",
             "--steps-per-eval-batch", "0", "--steps-per-eval-image", "0", "--steps-per-eval-all-images", "0",
             "--machine.device-type", self.device, "--vis", "tensorboard",
             "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam-cache"),
-            *overrides,
-            "neural-3d-video-data", "--data", str(scene_dir), "--cache-dir", str(self.output / "cache" / scene),
-        ]
+            *([] if self.iterations is None else schedule_options(iterations)),
+            *method_overrides(method, scene.frames),
+            *scene.dataparser(self.output),
+        ]  # fmt: skip
 
-    def run(self, scene: str, scene_dir: Path, method: str, overrides: List[str]) -> Dict[str, Any]:
-        """Train one method on one scene in a child process, then evaluate its checkpoints."""
-        command = self.train_command(scene, scene_dir, method, overrides)
-        run_dir = self.output / "runs" / scene / self.base_preset / method
+    def run(self, scene: Scene, method: str, seed: int) -> Dict[str, Any]:
+        """Train one (scene, method, seed) in a child process, then evaluate its checkpoints."""
+        command = self.train_command(scene, method, seed)
+        run_dir = self.output / "runs" / scene.name / self.base_preset / f"{method}-seed{seed}"
         record_path = run_dir / "benchmark_record.json"
         if self.reuse_runs and record_path.is_file():
             record = json.loads(record_path.read_text())
             if record.get("command") == command:
-                print(f"[speed_accuracy] {scene} / {method}: reusing {record_path}", flush=True)
+                print(f"[speed_accuracy] {scene.name} / {method} / {seed}: reusing {record_path}", flush=True)
                 return record
         shutil.rmtree(run_dir, ignore_errors=True)
         run_dir.mkdir(parents=True)
         timing_path = run_dir / "benchmark_timing.json"
-        print(f"[speed_accuracy] {scene} / {method}: ns-train {shlex.join(command)}", flush=True)
+        print(f"[speed_accuracy] {scene.name} / {method} / {seed}: ns-train {shlex.join(command)}", flush=True)
         with open(run_dir / "train.log", "w") as log:
             child = subprocess.Popen(
                 [sys.executable, str(Path(__file__).resolve()), TRAIN_CHILD, str(timing_path), *command],
@@ -238,92 +310,117 @@ class SpeedAccuracyBenchmark:
             _, status, usage = os.wait4(child.pid, 0)
             child.returncode = os.waitstatus_to_exitcode(status)
         if child.returncode != 0:
-            log_path = run_dir / "train.log"
-            raise RuntimeError(f"ns-train failed ({child.returncode}) for {scene} / {method}: see {log_path}")
+            raise RuntimeError(f"ns-train failed ({child.returncode}) for {scene.name} / {method}: see {run_dir}/train.log")
         timing = json.loads(timing_path.read_text())
-        print(f"[speed_accuracy] {scene} / {method}: trained in {timing['train_seconds']:.1f} s; evaluating",
-              flush=True)
+        print(f"[speed_accuracy] {scene.name} / {method} / {seed}: trained in {timing['train_seconds']:.1f} s; "
+              "evaluating", flush=True)
         record = {
             "command": command,
+            "scene": scene.name,
             "method": method,
-            "scene": scene,
-            "iterations": self.iterations,
+            "seed": seed,
+            "iterations": self.preset_iterations(),
             "train_seconds": timing["train_seconds"],
             "train_cpu_seconds": timing["train_cpu_seconds"],
             "setup_seconds": timing["setup_seconds"],
             "peak_rss_mib": usage.ru_maxrss / 1024.0,  # Linux: KiB
             "peak_cuda_mib": timing.get("peak_cuda_mib"),
-            "checkpoints": evaluate_checkpoints(run_dir / "config.yml", timing["checkpoints"]),
+            "checkpoints": evaluate_checkpoints(
+                run_dir / "config.yml", timing["checkpoints"], scene.moving(self.output), self.eval_frames
+            ),
         }
         record_path.write_text(json.dumps(record, indent=1))
         return record
 
-    def budget(self, runs: Dict[str, Dict[str, Any]]) -> float:
-        """Equal-time budget of a scene in seconds."""
-        if self.time_budget is not None:
-            return self.time_budget
-        return min(run["train_seconds"] for run in runs.values())
 
-    def report(self, records: Dict[str, Dict[str, Dict[str, Any]]], context: Dict[str, str]) -> str:
-        """The markdown: equal-iteration table, equal-time table, targets, command, machine, date."""
+class Report:
+    """Tables, targets and plot of a set of run records."""
+
+    def __init__(self, benchmark: SpeedAccuracyBenchmark, records: List[Dict[str, Any]]) -> None:
+        self.benchmark = benchmark
+        self.records = records
+        self.scenes = list(dict.fromkeys(r["scene"] for r in records))
+
+    def runs(self, scene: str, method: str) -> List[Dict[str, Any]]:
+        return [r for r in self.records if r["scene"] == scene and r["method"] == method]
+
+    def methods(self, scene: str) -> List[str]:
+        return list(dict.fromkeys(r["method"] for r in self.records if r["scene"] == scene))
+
+    def budget(self, scene: str) -> float:
+        """Equal-time budget of a scene: ``--time-budget``, or the shortest mean training time of the main methods."""
+        if self.benchmark.time_budget is not None:
+            return self.benchmark.time_budget
+        means = [np.mean([r["train_seconds"] for r in self.runs(scene, m)]) for m in self.benchmark.main_methods]
+        return float(min(m for m in means if not np.isnan(m)))
+
+    def at_budget(self, scene: str, method: str) -> List[Optional[Dict[str, Any]]]:
+        return [at_budget(r, self.budget(scene)) for r in self.runs(scene, method)]
+
+    def finals(self, scene: str, method: str) -> List[Dict[str, Any]]:
+        return [r["checkpoints"][-1] for r in self.runs(scene, method)]
+
+    def markdown(self, context: Dict[str, str]) -> str:
+        b = self.benchmark
         lpips_note = "" if has_lpips() else " LPIPS: missing (AlexNet weights not on disk; nothing downloaded)."
-        cuda = self.device == "cuda"
         lines = [
             "# Speed / accuracy benchmark",
             "",
-            f"Base preset `{self.base_preset}`, {self.iterations} iterations per method, device {self.device}. "
-            f"Synthetic N3D scenes {self.width}x{self.height}, {self.frames} frames, {self.cameras} cameras; "
-            f"metrics on every frame of the held-out camera cam00.{lpips_note}",
+            f"Base preset `{b.base_preset}` with its own defaults (gear-update schedule included), "
+            f"{b.preset_iterations()} iterations per run, device {b.device}. Held-out metrics on {b.eval_frames} "
+            f"frames of the held-out camera, evenly spaced over the video.{lpips_note} Mean ± sample standard "
+            f"deviation over seeds; `n` is the number of seeds ({b.seeds} for "
+            f"{', '.join(METHODS[m] for m in b.main_methods)}, 1 for the ablations, which ran on "
+            f"{', '.join(b.ablation_scenes)} only).",
             "",
-            "![PSNR against training time](speed_accuracy.png)",
+            "Scenes:",
+            "",
+        ]
+        lines += [f"- `{name}`: {SCENES[name].description}; held-out camera {SCENES[name].held_out}." for name in self.scenes]
+        lines += ["", "![PSNR against training time](speed_accuracy.png)", "", "## Equal wall-clock time (headline)", ""]
+        lines += [
+            "Each run at its last checkpoint within the scene's budget (the shortest mean total training time of "
+            + ", ".join(METHODS[m] for m in b.main_methods) + ").",
+            "",
+            "| scene | budget (s) | method | n | iteration reached | PSNR | SSIM | LPIPS |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for scene in self.scenes:
+            for method in self.methods(scene):
+                points = self.at_budget(scene, method)
+                if any(p is None for p in points):
+                    lines.append(f"| {scene} | {self.budget(scene):.0f} | {METHODS[method]} | {len(points)} | "
+                                 "a run has no checkpoint within the budget | | | |")
+                    continue
+                lines.append(
+                    f"| {scene} | {self.budget(scene):.0f} | {METHODS[method]} | {len(points)} | "
+                    f"{spread([p['step'] + 1 for p in points], 0)} | {spread([p['psnr'] for p in points])} | "
+                    f"{spread([p['ssim'] for p in points], 3)} | {lpips_of(points)} |"
+                )
+        lines += [
             "",
             "## Equal iterations",
             "",
-            "| scene | method | iterations | training time (s) | ms / iteration | PSNR | SSIM | LPIPS | render FPS "
-            "| samples / ray | parameters (in use) | peak RSS (MiB) | training CPU time (s) |"
-            + (" peak CUDA (MiB) |" if cuda else ""),
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if cuda else ""),
+            "| scene | method | n | training time (s) | ms / iteration | PSNR | SSIM | LPIPS | gear updates "
+            "| moving px at gear >= 2 | static px at gear 1 | samples / ray | render FPS | parameters (in use) "
+            "| peak RSS (MiB) | training CPU time (s) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
-        for scene, runs in records.items():
-            for method, run in runs.items():
-                last = run["checkpoints"][-1]
-                row = [
-                    scene, label(method, run), str(last["step"] + 1), f"{last['seconds']:.1f}",
-                    f"{1000 * run['train_seconds'] / run['iterations']:.1f}", f"{last['psnr']:.2f}",
-                    f"{last['ssim']:.3f}", fmt_lpips(last), f"{last['fps']:.2f}", f"{last['samples_per_ray']:.1f}",
-                    f"{last['parameters']:,} ({last['parameters_in_use']:,})", f"{run['peak_rss_mib']:.0f}",
-                    f"{run['train_cpu_seconds']:.1f}",
-                ]
-                if cuda:
-                    row.append("n/a" if run.get("peak_cuda_mib") is None else f"{run['peak_cuda_mib']:.0f}")
-                lines.append("| " + " | ".join(row) + " |")
-        lines += [
-            "",
-            "## Equal wall-clock time",
-            "",
-            "Each method at its last checkpoint whose training time is within the budget"
-            + (f" ({self.time_budget:.1f} s)." if self.time_budget is not None else
-               " (per scene: the shortest total training time among the methods)."),
-            "",
-            "| scene | budget (s) | method | checkpoint (iteration) | training time (s) | PSNR | SSIM | LPIPS "
-            "| samples / ray |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        for scene, runs in records.items():
-            budget = self.budget(runs)
-            for method, run in runs.items():
-                point = at_budget(run, budget)
-                if point is None:
-                    lines.append(
-                        f"| {scene} | {budget:.1f} | {label(method, run)} | none within the budget | | | | | |"
-                    )
-                    continue
+        for scene in self.scenes:
+            for method in self.methods(scene):
+                runs, finals = self.runs(scene, method), self.finals(scene, method)
                 lines.append(
-                    f"| {scene} | {budget:.1f} | {label(method, run)} | {point['step'] + 1} | {point['seconds']:.1f} "
-                    f"| {point['psnr']:.2f} | {point['ssim']:.3f} | {fmt_lpips(point)} "
-                    f"| {point['samples_per_ray']:.1f} |"
+                    f"| {scene} | {METHODS[method]} | {len(runs)} | {spread([r['train_seconds'] for r in runs], 0)} | "
+                    f"{spread([1000 * r['train_seconds'] / r['iterations'] for r in runs], 0)} | "
+                    f"{spread([p['psnr'] for p in finals])} | {spread([p['ssim'] for p in finals], 3)} | "
+                    f"{lpips_of(finals)} | {spread([p['gear_updates'] for p in finals], 0)} | "
+                    f"{share(finals, 'moving_at_gear_2')} | {share(finals, 'static_at_gear_1')} | "
+                    f"{spread([p['samples_per_ray'] for p in finals], 1)} | {spread([p['fps'] for p in finals])} | "
+                    f"{finals[0]['parameters']:,} ({finals[0]['parameters_in_use']:,}) | "
+                    f"{spread([r['peak_rss_mib'] for r in runs], 0)} | "
+                    f"{spread([r['train_cpu_seconds'] for r in runs], 0)} |"
                 )
-        lines += ["", "## Targets (mixed scene)", ""] + self.targets(records) + [
+        lines += ["", "## Targets", ""] + self.targets() + [
             "",
             "## How it was run",
             "",
@@ -335,95 +432,89 @@ class SpeedAccuracyBenchmark:
             f"- machine: {context['machine']}",
             f"- {context['load']}",
             "- training time: wall-clock seconds inside nerfstudio's training loop up to each checkpoint, without "
-            "writing checkpoints and with in-loop evaluation off (training CPU time: the same interval in CPU "
-            "seconds of the training process, less sensitive to other load on the machine); "
-            "render FPS: held-out frames per second of "
-            "`get_outputs_for_camera`; peak RSS: `ru_maxrss` of the training process.",
+            "writing checkpoints and with in-loop evaluation off; training CPU time: the same in CPU seconds of the "
+            "training process; render FPS: held-out frames per second of `get_outputs_for_camera`; gear maps: "
+            "`visible_gear_levels` on the scored frames; peak RSS: `ru_maxrss` of the training process.",
             "",
         ]
         return "\n".join(lines)
 
-    def targets(self, records: Dict[str, Dict[str, Dict[str, Any]]]) -> List[str]:
-        """Issue targets on the mixed scene, with the measured numbers (met or not)."""
-        runs = records.get("mixed", {})
+    def targets(self) -> List[str]:
+        """The issue's targets, with the measured numbers (met or not)."""
         lines = []
-        if "gear-nerf" in runs and "kplanes" in runs:
-            budget = self.budget(runs)
-            gear, kplanes = at_budget(runs["gear-nerf"], budget), at_budget(runs["kplanes"], budget)
-            if gear is None or kplanes is None:
-                lines.append(
-                    f"- gear-nerf vs plain K-Planes at equal time ({budget:.1f} s): "
-                    "a method has no checkpoint within the budget."
-                )
-            else:
-                gain = gear["psnr"] - kplanes["psnr"]
-                lines.append(
-                    f"- gear-nerf at least 1 dB above plain K-Planes at equal wall time ({budget:.1f} s): "
-                    f"{gear['psnr']:.2f} vs {kplanes['psnr']:.2f} dB, difference {gain:+.2f} dB "
-                    f"-> {'met' if gain >= 1.0 else 'not met'}"
-                )
-        if "gear-nerf" in runs and "uniform-128" in runs:
-            gear, uniform = runs["gear-nerf"], runs["uniform-128"]
-            gear_psnr, uniform_psnr = gear["checkpoints"][-1]["psnr"], uniform["checkpoints"][-1]["psnr"]
-            gap = uniform_psnr - gear_psnr
-            ratio = (gear["train_seconds"] / gear["iterations"]) / (uniform["train_seconds"] / uniform["iterations"])
+        for scene in self.scenes:
+            gear, kplanes = self.at_budget(scene, "gear-nerf"), self.at_budget(scene, "kplanes")
+            finals = self.finals(scene, "gear-nerf")
+            if not gear or not kplanes or any(p is None for p in (*gear, *kplanes)):
+                lines.append(f"- {scene}: not evaluated (needs gear-nerf and kplanes runs within the budget).")
+                continue
+            gain = np.mean([p["psnr"] for p in gear]) - np.mean([p["psnr"] for p in kplanes])
+            updates = min(p["gear_updates"] for p in finals)
+            moving = [p["moving_at_gear_2"] for p in finals if p["moving_at_gear_2"] is not None]
+            static = np.mean([p["static_at_gear_1"] for p in finals])
+            required = 0.0 if scene == "panoptic" else 0.5
+            moving_target = 0.5 if scene == "panoptic" else 0.8
             lines.append(
-                f"- gear-nerf within 0.3 dB of uniform-128 (equal iterations): {gear_psnr:.2f} vs "
-                f"{uniform_psnr:.2f} dB, gap {gap:+.2f} dB -> {'met' if gap <= 0.3 else 'not met'}"
+                f"- {scene}: Gear-NeRF {gain:+.2f} dB against plain K-Planes with L_SAM at equal wall time "
+                f"(target >= {required:+.1f}: {'met' if gain >= required else 'not met'}); at least {updates} gear "
+                f"updates per run (target >= 2: {'met' if updates >= 2 else 'not met'}); "
+                + (f"{100 * np.mean(moving):.0f} % of moving pixels at gear >= 2 (target >= {100 * moving_target:.0f} %: "
+                   f"{'met' if np.mean(moving) >= moving_target else 'not met'}); " if moving else "")
+                + f"{100 * static:.0f} % of static pixels at gear 1 (target >= 90 %: {'met' if static >= 0.9 else 'not met'})."
             )
-            lines.append(
-                f"- at no more than 60 % of its time per iteration: {100 * ratio:.0f} % -> "
-                f"{'met' if ratio <= 0.6 else 'not met'}"
-            )
-        return lines or ["- not evaluated (needs the mixed scene with gear-nerf, kplanes and uniform-128)."]
+        return lines
 
-    def plot(self, records: Dict[str, Dict[str, Dict[str, Any]]], path: Path) -> None:
-        """PSNR of the held-out camera against training time: one panel per scene, one curve per method."""
+    def plot(self, path: Path) -> None:
+        """Held-out PSNR against training time: one panel per scene, per method the mean over seeds (line) and
+        the range (band)."""
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        scenes = list(records)
-        columns = min(2, len(scenes))
-        rows = math.ceil(len(scenes) / columns)
-        figure, axes = plt.subplots(rows, columns, figsize=(6.0 * columns, 4.2 * rows), squeeze=False)
-        for axis, scene in zip(axes.flat, scenes):
-            for method, run in records[scene].items():
-                if "same_run_as" in run:
-                    continue
-                points = run["checkpoints"]
-                axis.plot([p["seconds"] for p in points], [p["psnr"] for p in points], marker="o", markersize=3,
-                          label=label(method, run, with_alias=records[scene]))
-            axis.axvline(self.budget(records[scene]), color="grey", linestyle="--", linewidth=0.8)
-            axis.set_title(f"{scene} scene")
+        columns = min(3, len(self.scenes))
+        rows = math.ceil(len(self.scenes) / columns)
+        figure, axes = plt.subplots(rows, columns, figsize=(5.5 * columns, 4.2 * rows), squeeze=False)
+        for axis, scene in zip(axes.flat, self.scenes):
+            for method in self.methods(scene):
+                runs = self.runs(scene, method)
+                seconds = np.mean([[p["seconds"] for p in r["checkpoints"]] for r in runs], axis=0)
+                psnrs = np.array([[p["psnr"] for p in r["checkpoints"]] for r in runs])
+                line = axis.plot(seconds, psnrs.mean(axis=0), marker="o", markersize=3,
+                                 label=f"{METHODS[method]} (n={len(runs)})")[0]
+                if len(runs) > 1:
+                    axis.fill_between(seconds, psnrs.min(axis=0), psnrs.max(axis=0), color=line.get_color(), alpha=0.15)
+            axis.axvline(self.budget(scene), color="grey", linestyle="--", linewidth=0.8)
+            axis.set_title(f"{scene}")
             axis.set_xlabel("training time (s)")
             axis.set_ylabel("held-out PSNR (dB)")
             axis.grid(alpha=0.3)
-            axis.legend(fontsize=7)
-        for axis in list(axes.flat)[len(scenes):]:
+            axis.legend(fontsize=6)
+        for axis in list(axes.flat)[len(self.scenes):]:
             axis.set_visible(False)
-        figure.suptitle(f"Held-out PSNR vs training time\n{self.base_preset}, {self.device}, {self.iterations} "
-                        "iterations; dashed line: equal-time budget", fontsize=9)
+        b = self.benchmark
+        figure.suptitle(f"Held-out PSNR vs training time ({b.base_preset}, {b.device}, {b.preset_iterations()} "
+                        "iterations; mean over seeds, band: min-max; dashed: equal-time budget)", fontsize=9)
         figure.tight_layout()
         figure.savefig(path, dpi=120)
         plt.close(figure)
 
 
-def label(method: str, run: Dict[str, Any], with_alias: Optional[Dict[str, Dict[str, Any]]] = None) -> str:
-    """Table / legend label; notes a reused run, or (legend) the methods that share this run."""
-    text = METHODS.get(method, method)
-    if "same_run_as" in run:
-        return f"{text} (same configuration and run as {run['same_run_as']})"
-    if with_alias:
-        aliases = [METHODS.get(m, m) for m, r in with_alias.items() if r.get("same_run_as") == method]
-        if aliases:
-            text += " = " + " = ".join(aliases)
-    return text
+def spread(values: List[float], digits: int = 2) -> str:
+    """Mean ± sample standard deviation (just the value for one)."""
+    if len(values) == 1:
+        return f"{values[0]:.{digits}f}"
+    return f"{np.mean(values):.{digits}f} ± {np.std(values, ddof=1):.{digits}f}"
 
 
-def fmt_lpips(point: Dict[str, Any]) -> str:
-    return "missing" if point.get("lpips") is None else f"{point['lpips']:.3f}"
+def share(points: List[Dict[str, Any]], key: str) -> str:
+    values = [p[key] for p in points if p[key] is not None]
+    return "n/a" if not values else spread([100 * v for v in values], 0) + " %"
+
+
+def lpips_of(points: List[Dict[str, Any]]) -> str:
+    values = [p["lpips"] for p in points if p.get("lpips") is not None]
+    return "missing" if len(values) < len(points) else spread(values, 3)
 
 
 def at_budget(run: Dict[str, Any], budget: float) -> Optional[Dict[str, Any]]:
@@ -438,12 +529,13 @@ def has_lpips() -> bool:
     return lpips_weights_path().is_file()
 
 
-def evaluate_checkpoints(config_path: Path, checkpoints: List[Dict[str, float]]) -> List[Dict[str, Any]]:
-    """Held-out metrics, render speed, samples per ray and parameters of each checkpoint of a run.
+def evaluate_checkpoints(
+    config_path: Path, checkpoints: List[Dict[str, float]], moving: Callable[[int, int], np.ndarray], eval_frames: int
+) -> List[Dict[str, Any]]:
+    """Held-out metrics, gear maps, render speed, samples per ray and parameters of each checkpoint of a run.
 
-    The pipeline is set up once (nerfstudio's ``eval_setup``, test split = held-out camera, SAM features
-    off: the metrics do not use them); each checkpoint is then loaded into it with nerfstudio's
-    ``eval_load_checkpoint``.
+    The pipeline is set up once (nerfstudio's ``eval_setup``, test split = held-out camera, SAM features off:
+    the metrics do not use them); each checkpoint is then loaded into it with ``eval_load_checkpoint``.
     """
     import torch
     from nerfstudio.utils.eval_utils import eval_load_checkpoint, eval_setup
@@ -455,20 +547,21 @@ def evaluate_checkpoints(config_path: Path, checkpoints: List[Dict[str, float]])
     config, pipeline, _, _ = eval_setup(config_path, test_mode="test", update_config_callback=no_sam)
     model = pipeline.model
     dataset = pipeline.datamanager.eval_dataset
+    frames = sorted({int(round(i)) for i in np.linspace(0, len(dataset) - 1, min(eval_frames, len(dataset)))})
     cuda = torch.device(pipeline.device).type == "cuda"
 
     def render(index: int) -> Dict[str, Any]:
         return model.get_outputs_for_camera(dataset.cameras[index : index + 1].to(pipeline.device))
 
-    render(0)  # warm-up, untimed
+    render(frames[0])  # warm-up, untimed
     results = []
     for entry in sorted(checkpoints, key=lambda e: e["step"]):
         config.load_step = int(entry["step"])
         eval_load_checkpoint(config, pipeline)
         metrics: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": []}
-        render_seconds = 0.0
-        samples, pixels = 0.0, 0
-        for index in range(len(dataset)):
+        render_seconds, samples, pixels = 0.0, 0.0, 0
+        moving_up, moving_all, static_low, static_all = 0, 0, 0, 0
+        for index in frames:
             if cuda:
                 torch.cuda.synchronize()
             started = time.perf_counter()
@@ -482,29 +575,35 @@ def evaluate_checkpoints(config_path: Path, checkpoints: List[Dict[str, float]])
                     metrics[name].append(float(image_metrics[name]))
             samples += float(outputs["num_samples"].sum())
             pixels += outputs["num_samples"].numel()
+            levels = model.visible_gear_levels(dataset.cameras[index : index + 1], outputs).cpu().numpy()
+            frame = int(dataset.metadata["frame_ids"][index])
+            truth = moving(frame, int(dataset.metadata["frame_numbers"][frame]))
+            moving_up += int((levels[truth] >= 2).sum())
+            moving_all += int(truth.sum())
+            static_low += int((levels[~truth] == 1).sum())
+            static_all += int((~truth).sum())
         total = sum(p.numel() for p in model.parameters())
         unused = sum(p.numel() for p in model.field.parameters()) - model.field.parameters_in_use()
         results.append(
             {
                 "step": int(entry["step"]),
                 "seconds": float(entry["seconds"]),
-                "psnr": mean(metrics["psnr"]),
-                "ssim": mean(metrics["ssim"]),
-                "lpips": mean(metrics["lpips"]) if metrics["lpips"] else None,
-                "fps": len(dataset) / render_seconds,
+                "psnr": float(np.mean(metrics["psnr"])),
+                "ssim": float(np.mean(metrics["ssim"])),
+                "lpips": float(np.mean(metrics["lpips"])) if metrics["lpips"] else None,
+                "fps": len(frames) / render_seconds,
                 "samples_per_ray": samples / pixels,
+                "moving_at_gear_2": moving_up / moving_all if moving_all else None,
+                "static_at_gear_1": static_low / static_all,
+                "gear_updates": int(model.gear_update_state.num_updates),
                 "parameters": int(total),
                 "parameters_in_use": int(total - unused),
             }
         )
         print(f"[speed_accuracy]   step {entry['step']:>6}  {entry['seconds']:8.1f} s  PSNR {results[-1]['psnr']:.2f}"
-              f"  samples/ray {results[-1]['samples_per_ray']:.1f}", flush=True)
+              f"  samples/ray {results[-1]['samples_per_ray']:.1f}  updates {results[-1]['gear_updates']}", flush=True)
     del pipeline, model
     return results
-
-
-def mean(values: List[float]) -> float:
-    return sum(values) / len(values)
 
 
 def machine_description(device: str) -> str:

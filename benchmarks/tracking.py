@@ -31,6 +31,7 @@ from scipy import ndimage
 from environment import BIN, command_environment
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding
+from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from gear_nerfstudio.track_metrics import accuracy, iou
 from gear_nerfstudio.tracking import track
@@ -136,7 +137,8 @@ class TrackingBenchmark:
         runs.mkdir(parents=True, exist_ok=True)
         self.ns(
             "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
-            "run", "--max-num-iterations", str(self.iterations), "--machine.device-type", "cpu", "--vis",
+            "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
+            "--machine.device-type", "cpu", "--vis",
             "tensorboard", "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache"),
             log=runs / "train.log",
         )

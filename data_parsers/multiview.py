@@ -6,9 +6,10 @@ dataset's world units) and says where its frames are; this module turns that int
 - times: frame index within the loaded window / (T - 1), 0 when T = 1;
 - split: train = every camera but the held-out one; val = test = the held-out camera, all frames;
 - world: rotated so the mean camera up is +z, centred and scaled so the region the cameras observe
-  fits the scene box [-1, 1]^3 (forward-facing rigs: their frusta between near and far; unbounded
-  rigs: a ball of radius sqrt(near * far) around the rig, with `unbounded` set for the model to
-  contract what lies outside);
+  fits the scene box [-1, 1]^3 (forward-facing rigs: their frusta between near and far; rigs that
+  surround their scene, such as a dome: the box of the camera centres; unbounded rigs: a ball of
+  radius sqrt(near * far) around the rig, with `unbounded` set for the model to contract what lies
+  outside);
 - metadata: near, far (scaled), unbounded, num_frames, camera_ids and frame_ids per image,
   camera_names and frame_numbers (the dataset's own names and frame numbers).
 """
@@ -18,7 +19,7 @@ from __future__ import annotations
 from abc import abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple, Type
+from typing import List, Literal, Optional, Sequence, Tuple, Type
 
 import numpy as np
 import torch
@@ -49,6 +50,11 @@ class MultiViewVideoDataParserConfig(DataParserConfig):
     """Where decoded/downscaled frames are cached; default ~/.cache/gear-nerfstudio/frames."""
     orientation_method: str = "up"
     """'up': rotate so the mean camera up is +z (nerfstudio's viewer convention); 'none': keep axes."""
+    scene_box: Literal["auto", "frusta", "rig"] = "auto"
+    """What fits the scene box (bounded rigs): 'frusta': the cameras' view frusta between near and far
+    (forward-facing rigs); 'rig': the box of the camera centres, 10 % larger (rigs that surround their scene,
+    such as a dome, whose frusta reach far past the opposite wall); 'auto': 'rig' when the rig surrounds its
+    scene (``surrounds_scene``), else 'frusta'."""
 
 
 @dataclass
@@ -112,7 +118,7 @@ class MultiViewVideoDataParser(DataParser):
         sizes = [(int(rig.width[i]) // d, int(rig.height[i]) // d) for i in cameras]
         files = self.frame_files(rig, cameras, frames, sizes)
 
-        transform, scale = _normalisation(rig, self.config.orientation_method)
+        transform, scale = _normalisation(rig, self.config.orientation_method, self.config.scene_box)
         c2w = _apply(transform, scale, torch.from_numpy(rig.camera_to_worlds).float())
 
         T = len(frames)
@@ -182,17 +188,30 @@ class MultiViewVideoDataParser(DataParser):
         return window
 
 
-def _normalisation(rig: ParsedRig, orientation_method: str) -> Tuple[torch.Tensor, float]:
+def surrounds_scene(camera_to_worlds: np.ndarray) -> bool:
+    """Whether a rig surrounds its scene: some cameras look against each other (their viewing directions are
+    more than 90 degrees apart) and the cameras look, on average, towards the middle of the rig."""
+    forward = -camera_to_worlds[:, :, 2]
+    forward = forward / np.linalg.norm(forward, axis=-1, keepdims=True)
+    centres = camera_to_worlds[:, :, 3]
+    inward = centres.mean(axis=0) - centres
+    inward = inward / np.linalg.norm(inward, axis=-1, keepdims=True).clip(min=1e-9)
+    return bool((forward @ forward.T).min() < 0 and (forward * inward).sum(-1).mean() > 0)
+
+
+def _normalisation(rig: ParsedRig, orientation_method: str, scene_box: str) -> Tuple[torch.Tensor, float]:
     """Rotation + translation (3x4) and scale that map the observed region into [-1, 1]^3."""
     poses = torch.eye(4).repeat(len(rig.names), 1, 1)
     poses[:, :3, :] = torch.from_numpy(rig.camera_to_worlds).float()
     _, orient = camera_utils.auto_orient_and_center_poses(poses, method=orientation_method, center_method="none")
     rotation = orient[:, :3].double().numpy()
     centres = rig.camera_to_worlds[:, :, 3] @ rotation.T
-    if rig.unbounded:
-        radius = float(np.sqrt(rig.near * rig.far))
+    around_rig = scene_box == "rig" or (scene_box == "auto" and surrounds_scene(rig.camera_to_worlds))
+    if rig.unbounded or around_rig:
         middle = centres.mean(axis=0)
-        half = max(radius, 1.1 * float(np.abs(centres - middle).max()))
+        half = 1.1 * float(np.abs(centres - middle).max())
+        if rig.unbounded:
+            half = max(float(np.sqrt(rig.near * rig.far)), half)
     else:
         points = [centres]
         for i in range(len(rig.names)):

@@ -18,6 +18,7 @@ from typing import List, Literal
 
 import tyro
 
+from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 
@@ -47,7 +48,8 @@ class DemoCommand:
             [
                 "ns-train", self.method,
                 "--output-dir", str(runs), "--experiment-name", "demo", "--timestamp", "demo",
-                "--max-num-iterations", str(self.iterations), "--steps-per-eval-all-images", "1000000",
+                "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
+                "--steps-per-eval-all-images", "1000000",
                 "--machine.device-type", self.device, "--vis", "tensorboard",
                 "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam-cache"),
                 "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache"),

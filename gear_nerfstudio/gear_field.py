@@ -102,6 +102,17 @@ def time_coords(x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tenso
     return torch.stack([torch.cat([x[:, axis : axis + 1], t], dim=-1) for axis in TIME_PLANE_AXES])
 
 
+def touched_columns(u: Float[Tensor, "N"], resolution: int) -> Bool[Tensor, "resolution"]:
+    """Cells along one spatial axis of a plane of ``resolution`` cells (``align_corners=True``, border-clamped)
+    that bilinear sampling at coordinates u in [-1, 1] reads."""
+    position = (u.clamp(-1.0, 1.0) + 1.0) * 0.5 * (resolution - 1)
+    low = position.floor().long().clamp(0, resolution - 1)
+    touched = torch.zeros(resolution, dtype=torch.bool, device=u.device)
+    touched[low] = True
+    touched[(low + 1).clamp(max=resolution - 1)] = True
+    return touched
+
+
 class PlaneTriple(nn.Module):
     """Three feature planes at one or more resolutions, sampled bilinearly.
 
@@ -153,32 +164,36 @@ def init_gear_time_plane(plane: Tensor) -> None:
     nn.init.uniform_(plane[:, half:], 0.1, 0.5)
 
 
-def plane_tv(space_planes: Sequence[Tensor], time_planes: Sequence[Tensor]) -> Tensor:
-    """K-Planes total variation: both axes of spatial planes, the spatial axis (W) of space-time planes."""
-    terms = []
-    for plane in space_planes:
-        terms.append((plane[..., 1:, :] - plane[..., :-1, :]).square().mean())
-        terms.append((plane[..., :, 1:] - plane[..., :, :-1]).square().mean())
-    for plane in time_planes:
-        terms.append((plane[..., :, 1:] - plane[..., :, :-1]).square().mean())
-    return torch.stack(terms).mean()
+def per_plane_sum(terms: List[Tensor], triples_per_field: int, like: Tensor) -> Tensor:
+    """Sum of per-triple terms (each the mean over its three planes) divided by the triples of one K-Planes
+    field: K-Planes' normalisation per plane, so every plane weighs the same whatever other planes exist."""
+    total = torch.stack(terms).sum() if terms else like.new_zeros(())
+    return total / triples_per_field
 
 
-def l1_time_planes(time_planes: Sequence[Tensor]) -> Tensor:
-    """K-Planes L1 penalty: mean deviation of space-time planes from 1 (a static scene)."""
-    return torch.stack([(1.0 - plane).abs().mean() for plane in time_planes]).mean()
-
-
-def time_smoothness(time_planes: Sequence[Tensor]) -> Tensor:
-    """K-Planes time smoothness: squared second difference along t; planes with < 3 rows contribute 0."""
+def plane_tv(space_triples: Sequence[Tensor], time_triples: Sequence[Tensor], triples_per_field: int) -> Tensor:
+    """K-Planes total variation: mean squared difference of neighbouring cells along both axes of each spatial
+    plane and along the spatial axis (W) of each space-time plane, normalised per plane (``per_plane_sum``)."""
     terms = [
-        (plane[..., 2:, :] - 2.0 * plane[..., 1:-1, :] + plane[..., :-2, :]).square().mean()
-        for plane in time_planes
-        if plane.shape[-2] >= 3
+        (t[..., 1:, :] - t[..., :-1, :]).square().mean() + (t[..., :, 1:] - t[..., :, :-1]).square().mean()
+        for t in space_triples
     ]
-    if not terms:
-        return time_planes[0].new_zeros(())
-    return torch.stack(terms).mean()
+    terms += [(t[..., :, 1:] - t[..., :, :-1]).square().mean() for t in time_triples]
+    return per_plane_sum(terms, triples_per_field, space_triples[0])
+
+
+def l1_time_planes(time_triples: Sequence[Tensor], triples_per_field: int, like: Tensor) -> Tensor:
+    """K-Planes L1 penalty: mean |1 - k| of each space-time plane (1 is static), normalised per plane."""
+    return per_plane_sum([(1.0 - t).abs().mean() for t in time_triples], triples_per_field, like)
+
+
+def time_smoothness(time_triples: Sequence[Tensor], triples_per_field: int, like: Tensor) -> Tensor:
+    """K-Planes time smoothness: mean squared second difference along t of each space-time plane (planes with
+    fewer than 3 rows have none), normalised per plane."""
+    terms = [
+        (t[..., 2:, :] - 2.0 * t[..., 1:-1, :] + t[..., :-2, :]).square().mean() for t in time_triples if t.shape[-2] >= 3
+    ]
+    return per_plane_sum(terms, triples_per_field, like)
 
 
 class GearFunction(nn.Module):
@@ -276,9 +291,14 @@ class GearField(nn.Module):
             PlaneTriple(feature_dim, [(t_res, r) for r in resolutions], init_time_plane)
             for t_res in self.time_resolutions
         )
-        # Gears that have had a training sample: the others' planes get no gradient, no regulariser and so
-        # no optimizer step or optimizer state (a static scene stays in gear 1 and never pays for time).
-        self.register_buffer("used_gears", torch.zeros(num_gears, dtype=torch.bool))
+        self.resolutions = [int(r) for r in resolutions]
+        # Columns (spatial cells) of each gear's space-time planes that a training sample has touched, per
+        # gear, resolution and plane. A gear with none gets no gradient, no regulariser and so no optimizer step
+        # or state (a static scene stays in gear 1 and never pays for time); a column that a gear touches for
+        # the first time inherits the lower gear's (``inherit_columns``).
+        self.register_buffer(
+            "used_columns", torch.zeros(num_gears, len(resolutions), 3, max(resolutions), dtype=torch.bool)
+        )
         self.basis = nn.Linear(3 * feature_dim * len(resolutions), feature_dim, bias=False)
         self.gear_function = GearFunction(gear_feature_dim, gear_resolution, max(1, gear_time_resolution or num_frames))
 
@@ -329,15 +349,15 @@ class GearField(nn.Module):
     ) -> Float[Tensor, "N M"]:
         """Eq 6-7: f = sum_G m_G f^G, evaluating each sample only with the planes of its own gear."""
         order = torch.argsort(levels)
-        counts = torch.bincount(levels, minlength=self.num_gears + 1)[1 : self.num_gears + 1]
-        if self.training and torch.is_grad_enabled():
-            self.used_gears |= counts > 0
-        counts = counts.tolist()
+        counts = torch.bincount(levels, minlength=self.num_gears + 1)[1 : self.num_gears + 1].tolist()
+        training = self.training and torch.is_grad_enabled()
         chunks = []
         start = 0
         for gear, count in enumerate(counts, start=1):
             if count:
                 index = order[start : start + count]
+                if training:
+                    self.claim_columns(x[index], gear)
                 chunks.append(self.gear_feature(x[index], t[index], gear))
             start += count
         if not chunks:
@@ -381,26 +401,67 @@ class GearField(nn.Module):
         gear_ids = {id(p) for p in self.gear_function.parameters()}
         return [p for p in self.parameters() if id(p) not in gear_ids]
 
+    @property
+    def used_gears(self) -> Tensor:
+        """(num_gears,) bool: gears whose space-time planes have had a training sample."""
+        return self.used_columns.flatten(1).any(dim=1)
+
+    @torch.no_grad()
+    def claim_columns(self, x: Float[Tensor, "N 3"], gear: int) -> None:
+        """Mark the columns of gear ``gear``'s space-time planes that samples at x (normalised) touch; columns
+        touched for the first time inherit the lower gear's (``inherit_columns``) before the gear is evaluated."""
+        touched = torch.zeros_like(self.used_columns[0])
+        for r, resolution in enumerate(self.resolutions):
+            for j, axis in enumerate(TIME_PLANE_AXES):
+                touched[r, j, :resolution] = touched_columns(x[:, axis], resolution)
+        new = touched & ~self.used_columns[gear - 1]
+        if gear > 1 and bool(new.any()):
+            self.inherit_columns(gear, new)
+        self.used_columns[gear - 1] |= touched
+
+    @torch.no_grad()
+    def inherit_columns(self, gear: int, columns: Tensor) -> None:
+        """An upshift keeps what the region had learned: the given columns (resolution, plane, cell) of k^gear
+        become those of the highest lower gear that has used them (gear 1 otherwise), resampled linearly to
+        gear's rows (Sec 4.4's temporal resolutions). A region that moves up a gear then renders as before
+        the move, and its new rows start from its motion at the lower temporal resolution."""
+        remaining = columns
+        for source in range(gear - 1, 0, -1):
+            take = remaining if source == 1 else remaining & self.used_columns[source - 1]
+            if not bool(take.any()):
+                continue
+            remaining = remaining & ~take
+            for r, (target_plane, source_plane) in enumerate(
+                zip(self.time_planes[gear - 1].planes, self.time_planes[source - 1].planes)
+            ):
+                resampled = F.interpolate(
+                    source_plane, size=target_plane.shape[-2:], mode="bilinear", align_corners=True
+                )
+                mask = take[r, :, : target_plane.shape[-1]][:, None, None, :]
+                target_plane.copy_(torch.where(mask, resampled, target_plane))
+
     def used_time_planes(self) -> List[Tensor]:
         """Space-time planes k^G of the gears that have had a training sample."""
-        return [plane for gear, triple in enumerate(self.time_planes) if self.used_gears[gear] for plane in triple.planes]
+        used = self.used_gears.tolist()
+        return [plane for gear, triple in enumerate(self.time_planes) if used[gear] for plane in triple.planes]
 
     def parameters_in_use(self) -> int:
         """Number of parameters that training updates: everything but the planes of unused gears."""
-        unused = {
-            id(plane) for gear, triple in enumerate(self.time_planes) if not self.used_gears[gear] for plane in triple.planes
-        }
+        used = self.used_gears.tolist()
+        unused = {id(plane) for gear, triple in enumerate(self.time_planes) if not used[gear] for plane in triple.planes}
         return sum(p.numel() for p in self.parameters() if id(p) not in unused)
 
     def regularisers(self) -> Dict[str, Tensor]:
-        """K-Planes regularisers on the radiance planes of the used gears (the gear function is left alone)."""
+        """K-Planes regularisers on the radiance planes of the used gears, normalised per plane as in K-Planes
+        (a field of one gear has 2 x len(resolutions) plane triples, of which len(resolutions) space-time), so
+        each plane weighs the same however many gears are in use. The gear function is left alone."""
         space = list(self.space_planes.planes)
         time = self.used_time_planes()
-        zero = space[0].new_zeros(())
+        count = len(self.resolutions)
         return {
-            "plane_tv": plane_tv(space, time),
-            "l1_time_planes": l1_time_planes(time) if time else zero,
-            "time_smoothness": time_smoothness(time) if time else zero,
+            "plane_tv": plane_tv(space, time, 2 * count),
+            "l1_time_planes": l1_time_planes(time, count, space[0]),
+            "time_smoothness": time_smoothness(time, count, space[0]),
         }
 
 
@@ -446,7 +507,7 @@ class ProposalDensityField(nn.Module):
         """K-Planes regularisers on the proposal planes."""
         space, time = list(self.space_planes.planes), list(self.time_planes.planes)
         return {
-            "plane_tv": plane_tv(space, time),
-            "l1_time_planes": l1_time_planes(time),
-            "time_smoothness": time_smoothness(time),
+            "plane_tv": plane_tv(space, time, 2),
+            "l1_time_planes": l1_time_planes(time, 1, space[0]),
+            "time_smoothness": time_smoothness(time, 1, space[0]),
         }

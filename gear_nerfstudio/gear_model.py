@@ -38,7 +38,7 @@ from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gear_nerfstudio.gear_field import GearField, ProposalDensityField
-from gear_nerfstudio.gear_updates import GearUpdateConfig, GearUpdater
+from gear_nerfstudio.gear_updates import GearUpdateConfig, GearUpdater, GearUpdateState
 from gear_nerfstudio.split_sampler import SplitSampler
 from gear_nerfstudio.viewer_tracking import ViewerTracking
 
@@ -215,6 +215,7 @@ class GearNeRFModel(Model):
         else:
             self.base_sampler = UniformSampler(num_samples=config.num_samples)
         self.split_sampler = SplitSampler(split_base=config.split_base)
+        self.gear_update_state = GearUpdateState()
 
         near = metadata.get("near") if config.near_plane is None else config.near_plane
         far = metadata.get("far") if config.far_plane is None else config.far_plane
@@ -262,12 +263,16 @@ class GearNeRFModel(Model):
         updates = self.config.gear_updates.enabled and self.config.num_gears > 1
         if updates and attributes.pipeline is not None and attributes.trainer is not None:
             trainer = attributes.trainer
+            first_step = getattr(trainer, "_start_step", 0)
             updater = GearUpdater(
                 self.config.gear_updates,
                 self,
                 attributes.pipeline.datamanager,
                 attributes.optimizers.optimizers["gear_field"],
-                last_step=getattr(trainer, "_start_step", 0) + trainer.config.max_num_iterations - 1,
+                self.gear_update_state,
+                first_step=first_step,
+                last_step=first_step + trainer.config.max_num_iterations - 1,
+                seed=trainer.config.machine.seed,
             )
             callbacks.append(
                 TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], updater, update_every_num_iters=1)
@@ -349,6 +354,20 @@ class GearNeRFModel(Model):
         if tracked is not None:
             outputs["tracked_mask"] = tracked
         return outputs
+
+    @torch.no_grad()
+    def visible_gear_levels(self, camera: Cameras, outputs: Optional[Dict[str, Tensor]] = None) -> Int[Tensor, "H W"]:
+        """Eq 5 at the surface each pixel of a one-camera render sees (its median depth): the gear map.
+
+        ``outputs``: that camera's ``get_outputs_for_camera`` result, rendered here when not given.
+        """
+        camera = camera.to(self.device)
+        if outputs is None:
+            outputs = self.get_outputs_for_camera(camera)
+        rays = camera.generate_rays(camera_indices=0, keep_shape=True)
+        surface = rays.origins + rays.directions * outputs["depth"]
+        times = None if rays.times is None else rays.times.expand(*surface.shape[:-1], 1)
+        return self.field.gear_levels(surface, times)
 
     def get_metrics_dict(self, outputs: Dict[str, Any], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """PSNR of the batch and the mean number of samples per ray."""

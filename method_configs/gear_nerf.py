@@ -9,6 +9,8 @@ Long videos never load all frames: the datamanager keeps 40 training images in m
 
 from __future__ import annotations
 
+from typing import List
+
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from gear_nerfstudio.schedulers import FloatCosineDecaySchedulerConfig
@@ -23,6 +25,15 @@ from gear_nerfstudio.gear_updates import GearUpdateConfig
 
 LEARNING_RATE = 0.02
 """Initial learning rate for all parameters (Sec 5.1)."""
+EPOCHS_PER_RUN = 20
+"""The paper's code trains 20 epochs of a fixed number of iterations; every preset takes the same proportion of
+its own default iterations as its epoch for L and L' (Sec 4.3)."""
+
+
+def schedule_options(iterations: int) -> List[str]:
+    """``ns-train`` options that scale the gear-update schedule to a run of this many iterations, as the presets
+    do (an epoch is 1/20 of the run): for commands that train a preset for fewer iterations than its default."""
+    return ["--pipeline.model.gear-updates.iterations-per-epoch", str(max(1, iterations // EPOCHS_PER_RUN))]
 
 
 def trainer_config(
@@ -70,10 +81,20 @@ def trainer_config(
     )
 
 
+SMALL_ITERATIONS = 2000
+"""Default iterations of the CPU presets."""
+
+
+PAPER_ITERATIONS = 30000
+"""Default iterations of ``gear-nerf``: 30,000 of 4,096 rays (123 M rays). The paper's code trains N3D 20 epochs of
+4,000 iterations of 16,384 rays (1.3 G rays) and Immersive 20 x 4,000 of 5,000 rays (400 M): ``gear-nerf`` keeps the
+paper's L = 3, L' = 10 in proportion (epochs of 1,500 iterations: updates at 4,500, 9,000 and 13,500, as the
+paper's at 12,000, 24,000 and 36,000 of 80,000) on a 3x (Immersive) to 11x (N3D) smaller ray budget."""
+
+
 def small_model(num_gears: int) -> GearNeRFModelConfig:
-    """Planes and MLPs sized for a CPU; gear updates every 2 epochs until 4 remain, so that a
-    2000-iteration preview of a small scene gets several updates (the paper's L = 3, L' = 10 would
-    leave none)."""
+    """Planes and MLPs sized for a CPU; the paper's L = 3, L' = 10 with epochs of 100 iterations (1/20 of the
+    preset's 2,000), i.e. updates at steps 300, 600 and 900 at any scene size."""
     return GearNeRFModelConfig(
         num_gears=num_gears,
         feature_dim=16,
@@ -84,27 +105,37 @@ def small_model(num_gears: int) -> GearNeRFModelConfig:
         sam_head_dim=16,
         num_samples=24,
         eval_num_rays_per_chunk=1024,
-        gear_updates=GearUpdateConfig(epochs_between_updates=2.0, epochs_after_updates=4.0),
+        gear_updates=GearUpdateConfig(iterations_per_epoch=SMALL_ITERATIONS // EPOCHS_PER_RUN),
     )
 
 
 gear_nerf = MethodSpecification(
     config=trainer_config(
         "gear-nerf",
-        GearNeRFModelConfig(num_gears=4, feature_dim=32, num_samples=64, eval_num_rays_per_chunk=4096),
+        GearNeRFModelConfig(
+            num_gears=4,
+            feature_dim=32,
+            num_samples=64,
+            eval_num_rays_per_chunk=4096,
+            gear_updates=GearUpdateConfig(iterations_per_epoch=PAPER_ITERATIONS // EPOCHS_PER_RUN),
+        ),
         num_rays_per_batch=4096,
-        max_num_iterations=30000,
+        max_num_iterations=PAPER_ITERATIONS,
         warmup=512,
     ),
     description="Gear-NeRF (CVPR 2024): gears, motion-aware spatio-temporal sampling, 4D SAM embedding.",
 )
 
 gear_nerf_small = MethodSpecification(
-    config=trainer_config("gear-nerf-small", small_model(num_gears=4), 1024, max_num_iterations=2000, warmup=100),
+    config=trainer_config(
+        "gear-nerf-small", small_model(num_gears=4), 1024, max_num_iterations=SMALL_ITERATIONS, warmup=100
+    ),
     description="Gear-NeRF CPU preview preset: small planes, 24 base samples per ray, 1024 rays per batch.",
 )
 
 gear_nerf_baseline = MethodSpecification(
-    config=trainer_config("gear-nerf-baseline", small_model(num_gears=1), 1024, max_num_iterations=2000, warmup=100),
+    config=trainer_config(
+        "gear-nerf-baseline", small_model(num_gears=1), 1024, max_num_iterations=SMALL_ITERATIONS, warmup=100
+    ),
     description="Baseline for the benchmark: one gear (plain K-Planes, uniform sampling), small preset sizes.",
 )

@@ -8,6 +8,7 @@ import torch
 from PIL import Image
 
 from gear_nerfstudio.data_parsers.google_immersive import GoogleImmersiveDataParserConfig
+from gear_nerfstudio.data_parsers.multiview import surrounds_scene
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.projection import project
@@ -156,3 +157,40 @@ def test_real_n3d_frame_parses(tmp_path):
     forward = -train.cameras.camera_to_worlds[:, :, 2]
     mean = forward.mean(0) / torch.linalg.norm(forward.mean(0))
     assert float((forward @ mean).min()) > 0.8
+
+
+def ring_rig(count: int = 12, radius: float = 3.0, height: float = 2.0) -> np.ndarray:
+    """Camera-to-world poses (OpenGL axes) on a ring, each looking at a point on the floor in the middle."""
+    poses = []
+    for angle in np.linspace(0, 2 * np.pi, count, endpoint=False):
+        centre = np.array([radius * np.cos(angle), radius * np.sin(angle), height])
+        back = centre - np.zeros(3)
+        back /= np.linalg.norm(back)
+        right = np.cross([0.0, 0.0, 1.0], back)
+        right /= np.linalg.norm(right)
+        poses.append(np.stack([right, np.cross(back, right), back, centre], axis=-1))
+    return np.array(poses)
+
+
+def test_a_rig_that_surrounds_its_scene_is_told_from_forward_facing_rigs(scene_dirs, cache_dir):
+    assert surrounds_scene(ring_rig())
+    for name in ("technicolor", "n3d"):
+        config_class, defaults = PARSERS[name]
+        rig = config_class(data=scene_dirs[name], cache_dir=cache_dir, **defaults).setup().read_rig()
+        assert not surrounds_scene(rig.camera_to_worlds)
+
+
+@pytest.mark.skipif(not (SHARED_REAL / "panoptic_basketball").is_dir(), reason="shared real data not present")
+def test_a_dome_capture_fits_the_box_of_its_cameras(tmp_path):
+    """The real dome capture: its frusta reach 7 units past every camera, its scene lies inside the rig."""
+    def outputs(scene_box):
+        config = TechnicolorDataParserConfig(
+            data=SHARED_REAL / "panoptic_basketball", near=0.3, far=7.0, cache_dir=tmp_path, scene_box=scene_box
+        )
+        return config.setup().get_dataparser_outputs("train")
+
+    auto, frusta = outputs("auto"), outputs("frusta")
+    centres = auto.cameras.camera_to_worlds[:, :, 3]
+    assert 0.85 < float(centres.abs().max()) <= 1.0  # the cameras fill the box
+    assert auto.dataparser_scale > 2 * frusta.dataparser_scale  # twice the plane resolution on the scene
+    assert auto.dataparser_scale == outputs("rig").dataparser_scale

@@ -122,6 +122,7 @@ def test_grouped_features_match_dense_sum_over_gears():
         for triple in field.time_planes:
             for plane in triple.planes:
                 plane.uniform_(0.5, 1.5)
+    field.used_columns[:] = True  # every gear trained everywhere: nothing to inherit
     positions, times = random_inputs()
     x = positions.clamp(-1, 1)
     levels = torch.randint(1, 5, (len(x),))
@@ -220,7 +221,7 @@ def test_regularisers_start_at_zero_for_time_planes_and_respond_to_changes():
         field.time_planes[3].planes[0][:, :, 1::2] += 0.5  # zig-zag along t
     unused = field.regularisers()  # gear 4 has had no sample yet: its planes are not regularised
     assert unused["l1_time_planes"] == 0 and unused["time_smoothness"] == 0
-    field.used_gears[3] = True
+    field.used_columns[3] = True
     reg = field.regularisers()
     assert reg["l1_time_planes"] > 0 and reg["time_smoothness"] > 0
 
@@ -271,3 +272,73 @@ def test_evaluation_does_not_mark_gears_as_used():
     with torch.no_grad():
         field(positions.clamp(-1, 1), torch.nn.functional.normalize(positions, dim=-1), times)
     assert not bool(field.used_gears.any())
+
+
+def kplanes_regularisers(space, time):
+    """The K-Planes plugin's regularisers written per plane (each a mean), averaged over the planes (planes of
+    fewer than 3 rows count with 0 time smoothness)."""
+    tv = [((c[:, 1:] - c[:, :-1]) ** 2).mean() + ((c[:, :, 1:] - c[:, :, :-1]) ** 2).mean() for t in space for c in t]
+    tv += [((c[:, :, 1:] - c[:, :, :-1]) ** 2).mean() for t in time for c in t]
+    l1 = [(1 - c).abs().mean() for t in time for c in t]
+    smooth = [((c[:, 2:] - 2 * c[:, 1:-1] + c[:, :-2]) ** 2).mean() if c.shape[1] >= 3 else 0.0 for t in time for c in t]
+    return {"plane_tv": sum(tv) / len(tv), "l1_time_planes": sum(l1) / len(l1), "time_smoothness": sum(smooth) / len(l1)}
+
+
+def test_regularisers_of_one_gear_are_those_of_k_planes_and_other_gears_do_not_reweigh_them():
+    field = small_field(num_frames=6)
+    with torch.no_grad():
+        for plane in [*field.space_planes.planes, *field.time_planes[0].planes, *field.time_planes[1].planes]:
+            plane.add_(torch.randn_like(plane) * 0.1)
+    field.used_columns[0] = True  # gear 1 in use (one time row: no time smoothness)
+    alone = field.regularisers()
+    reference = kplanes_regularisers(list(field.space_planes.planes), list(field.time_planes[0].planes))
+    for name in alone:
+        assert torch.isclose(alone[name], torch.as_tensor(reference[name]), rtol=1e-5), name
+    # Gear 2 comes into use: its planes add their own terms, gear 1's keep their weight.
+    field.used_columns[1] = True
+    both = field.regularisers()
+    gear_2 = kplanes_regularisers([], list(field.time_planes[1].planes))
+    num_planes = {"plane_tv": 12, "l1_time_planes": 6, "time_smoothness": 6}  # of one K-Planes field (2 resolutions)
+    for name in both:
+        added = gear_2[name] * (len(field.time_planes[1].planes) * 3) / num_planes[name]
+        assert torch.isclose(both[name], alone[name] + added, rtol=1e-5), name
+    assert both["time_smoothness"] > 0 and both["l1_time_planes"] > alone["l1_time_planes"]
+
+
+def train_forward(field: GearField, positions, times) -> None:
+    directions = torch.nn.functional.normalize(torch.ones_like(positions), dim=-1)
+    field.train()
+    with torch.enable_grad():
+        field(positions, directions, times)
+
+
+@pytest.mark.parametrize("lower", [1, 2])
+def test_a_region_that_shifts_up_keeps_its_features(lower):
+    """k^(G+1) of the columns a region newly uses starts as k^G resampled in time, so the region's features are
+    the same right after the upshift (exactly here: 10 frames give 1, 4, 7, 10 rows, and the nodes of gear 2's
+    rows are nodes of gear 3's)."""
+    field = small_field(num_frames=10)
+    assert field.time_resolutions == [1, 4, 7, 10]
+    with torch.no_grad():
+        for plane in field.time_planes[lower - 1].planes:
+            plane.add_(torch.randn_like(plane) * 0.3)
+    field.used_columns[: lower] = True  # the lower gears have been trained everywhere
+    positions, times = random_inputs(600)
+    positions = positions.clamp(-1, 1)
+    moving = positions[:, 0] > 0.5
+    before = field.gear_feature(positions[moving], times[moving], lower)
+    untouched = [plane.detach().clone() for plane in field.time_planes[lower].planes]
+
+    slope = 1.5 if lower == 1 else 0.5  # g = lower at x = 0.5, in (lower, lower + 1] above, in (lower - 1, lower] below
+    set_gear_ramp(field, lower - 1 - 1.5 * slope, lower - 1 + 0.5 * slope)
+    levels = field.gear_levels(positions, times)
+    assert set(levels[positions[:, 0] > 0.5].tolist()) == {lower + 1} and set(levels[positions[:, 0] < 0.5].tolist()) == {lower}
+    train_forward(field, positions, times)
+    upshifted = positions[:, 0] > 0.6
+    after = field.gear_feature(positions[upshifted], times[upshifted], lower + 1)
+    assert torch.allclose(after, before[(positions[moving, 0] > 0.6)], atol=1e-5)
+    # Columns that no upshifted sample touched keep their initial values.
+    plane, old = field.time_planes[lower].planes[1], untouched[1]  # resolution 16; plane k_3(x, t) is index 2
+    x_cells = torch.linspace(-1, 1, 16)
+    far = x_cells < 0.4
+    assert torch.equal(plane[2][..., far], old[2][..., far]) and not torch.equal(plane[2], old[2])

@@ -1,18 +1,36 @@
-"""Gear-assignment update pieces (Sec 4.3): prompts, Eq 10 targets and loss, the Eq 11 steps."""
+"""Gear-assignment updates (Sec 4.3): prompts, Eq 10 targets and loss, the Eq 11 steps, and the whole loop in
+nerfstudio's trainer (updates, both stop rules, resume)."""
 
 from __future__ import annotations
 
-import torch
+import copy
+import dataclasses
+from pathlib import Path
+from typing import Optional, Tuple
 
+import numpy as np
+import pytest
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+
+from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
 from gear_nerfstudio.gear_field import GearField
 from gear_nerfstudio.gear_updates import (
+    GearUpdater,
+    GearUpdateState,
+    NoGearUpdates,
+    describe_plan,
     level_targets,
     moving_patches,
     patch_prompts,
     patches_to_pixels,
+    planned_updates,
     shift_gears,
     upshift_loss,
 )
+from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_small
+from gear_nerfstudio.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
 
 
 def test_patch_prompts_pick_the_highest_and_lowest_patches():
@@ -86,3 +104,139 @@ def test_moving_patches_average_the_change_and_spread_back_to_pixels():
     pixels = patches_to_pixels(moving, (20, 20), patch_size=8)
     assert pixels.shape == (20, 20)
     assert int(pixels.sum()) == 64 and bool(pixels[:8, :8].all())
+
+
+# Sec 4.3 as a whole: nerfstudio's Trainer, in this process, on a small synthetic scene with ground truth.
+
+LOOP_SPEC = SyntheticSpec(dataset="n3d", width=64, height=48, frames=6, cameras=5, motion="mixed")
+LOOP_ITERATIONS = 400
+EPOCH = 20
+"""Iterations per epoch of the loop test: updates every 60 iterations while 200 remain (60, 120, 180)."""
+
+
+def loop_config(root: Path, name: str, iterations: int, load_dir: Optional[Path] = None, **updates) -> TrainerConfig:
+    config = copy.deepcopy(gear_nerf_small.config)
+    config.output_dir, config.experiment_name, config.timestamp = root / "runs", "loop", name
+    config.machine.device_type, config.vis = "cpu", "tensorboard"
+    config.max_num_iterations, config.load_dir = iterations, load_dir
+    config.steps_per_save, config.save_only_latest_checkpoint = 100, False
+    config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 0
+    config.pipeline.datamanager.dataparser = Neural3DVideoDataParserConfig(data=root / "scene", cache_dir=root / "cache")
+    config.pipeline.datamanager.sam_cache_dir = root / "sam"
+    config.pipeline.model.gear_updates = dataclasses.replace(
+        config.pipeline.model.gear_updates, iterations_per_epoch=EPOCH, **updates
+    )
+    return config
+
+
+def train(config: TrainerConfig) -> Tuple[Trainer, GearUpdater]:
+    """nerfstudio's train loop for one process (``ns-train``'s ``train_loop``), returning the trainer and updater."""
+    torch.manual_seed(config.machine.seed)
+    np.random.seed(config.machine.seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    updater = next(c.func for c in trainer.callbacks if isinstance(c.func, GearUpdater))
+    return trainer, updater
+
+
+@pytest.fixture(scope="module")
+def loop_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("gear-loop")
+    write_synthetic_scene(root / "scene", LOOP_SPEC)
+    return root, *train(loop_config(root, "first", LOOP_ITERATIONS))
+
+
+def ground_truth_gear_levels(root: Path, trainer: Trainer) -> Tuple[np.ndarray, np.ndarray]:
+    """Gear levels (Eq 5) of the true surface points that the held-out camera cam00 sees at every frame (from the
+    scene's ground-truth depth), and which of them lie on a moving object."""
+    truth = np.load(root / "scene" / "ground_truth" / "cam00.npz")
+    camera = rig_for(LOOP_SPEC)[0]
+    rows, cols = np.mgrid[0 : camera.height, 0 : camera.width]
+    origins, directions = camera.rays(np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], axis=-1))
+    outputs = trainer.pipeline.datamanager.train_dataparser_outputs
+    transform = outputs.dataparser_transform.double()
+    field = trainer.pipeline.model.field
+    levels = []
+    for frame, depth in enumerate(truth["depth"]):
+        world = torch.from_numpy(origins + directions * depth.reshape(-1, 1))
+        scene = ((world @ transform[:, :3].T + transform[:, 3]) * outputs.dataparser_scale).float()
+        times = torch.full((len(scene), 1), frame / (LOOP_SPEC.frames - 1))
+        levels.append(field.gear_levels(scene, times).reshape(depth.shape).numpy())
+    return np.stack(levels), truth["motion"] > 0
+
+
+def test_updates_move_moving_objects_up_and_keep_the_static_scene_in_gear_1(loop_run):
+    root, trainer, updater = loop_run
+    assert updater.planned == [60, 120, 180]
+    assert int(updater.state.num_updates) == 3 and bool(updater.state.finished)  # then the L' rule ended them
+    levels, moving = ground_truth_gear_levels(root, trainer)
+    assert moving.mean() > 0.03  # the spheres cover part of the held-out view
+    assert (levels[moving] >= 2).mean() >= 0.8
+    assert (levels[~moving] == 1).mean() >= 0.9
+
+
+def test_updates_end_when_the_loss_maps_are_flat(loop_run):
+    """The variance rule: an update whose loss maps vary less than the threshold ends the updates, unchanged."""
+    _, trainer, updater = loop_run
+    flat = GearUpdater(
+        dataclasses.replace(updater.config, variance_threshold=1e9), trainer.pipeline.model,
+        trainer.pipeline.datamanager, updater.optimizer, GearUpdateState(), first_step=0, last_step=LOOP_ITERATIONS - 1,
+    )
+    before = [p.detach().clone() for p in trainer.pipeline.model.field.gear_function.parameters()]
+    stats = flat.update(60)
+    assert stats["loss_map_variance"] < 1e9 and bool(flat.state.finished) and int(flat.state.num_updates) == 0
+    assert all(torch.equal(p, b) for p, b in zip(trainer.pipeline.model.field.gear_function.parameters(), before))
+    flat(120)  # finished: a later due step does nothing
+    assert int(flat.state.num_updates) == 0
+
+
+def test_a_resumed_run_goes_on_with_the_updates_where_they_were(loop_run):
+    root, first, _ = loop_run
+    checkpoints = root / "runs" / "loop" / "gear-nerf-small" / "first" / "nerfstudio_models"
+    # From step 100 (after the update at 60) to step 399: the updates at 120 and 180 are the 2nd and 3rd.
+    middle = copy.deepcopy(loop_config(root, "middle", LOOP_ITERATIONS - 101, load_dir=checkpoints))
+    middle.load_step = 100
+    trainer, updater = train(middle)
+    assert updater.planned == [120, 180]
+    assert int(updater.state.num_updates) == 3 and bool(updater.state.finished)
+    # From the finished run's last checkpoint: a short resumed run is no error and updates nothing.
+    _, updater = train(loop_config(root, "after", 10, load_dir=checkpoints))
+    assert bool(updater.state.finished) and int(updater.state.num_updates) == 3
+
+
+def test_a_run_that_would_get_no_update_stops_before_training(tmp_path):
+    root = tmp_path
+    write_synthetic_scene(root / "scene", SyntheticSpec(dataset="n3d", width=24, height=18, frames=3, cameras=4))
+    config = loop_config(root, "short", 150)  # updates every 60 iterations while 200 remain: none
+    with pytest.raises(NoGearUpdates, match="--max-num-iterations"):
+        train(config)
+
+
+REAL_SIZES = {
+    # training cameras, frames, width, height (the datasets' usual training sizes; SOURCES.md for panoptic)
+    "technicolor": (15, 50, 2048, 1088),
+    "n3d": (20, 300, 1352, 1014),
+    "immersive": (45, 50, 1280, 960),
+    "panoptic": (15, 20, 320, 180),
+    "test scene": (4, 4, 40, 30),
+}
+
+
+@pytest.mark.parametrize("preset", [gear_nerf, gear_nerf_small], ids=lambda p: p.config.method_name)
+@pytest.mark.parametrize("dataset", REAL_SIZES)
+def test_every_preset_plans_several_updates_at_every_dataset_size(preset, dataset):
+    """The schedule counts iterations, not passes over the data: the same steps at every size, several of them
+    within the preset's own iterations, and at the datasets' real sizes well before a single pass."""
+    config = preset.config
+    updates = config.pipeline.model.gear_updates
+    steps = planned_updates(updates, 0, config.max_num_iterations - 1)
+    assert len(steps) >= 3 and config.max_num_iterations - 1 - steps[-1] >= updates.epochs_after_updates * updates.iterations_per_epoch
+    count, frames, width, height = REAL_SIZES[dataset]
+    cameras = Cameras(
+        camera_to_worlds=torch.eye(4)[:3].expand(count * frames, 3, 4), fx=500.0, fy=500.0, cx=width / 2, cy=height / 2,
+        width=width, height=height,
+    )
+    plan = describe_plan(updates, steps, cameras, config.pipeline.datamanager.train_num_rays_per_batch)
+    assert f"{count * frames * width * height / 1e6:.4g} M training pixels" in plan
+    assert ", ".join(map(str, steps)) in plan

@@ -194,6 +194,7 @@ def test_ns_train_optimises_the_sam_loss(scene, datamanager, tmp_path):
         str(BIN / "ns-train"), "gear-nerf-small", "--output-dir", str(tmp_path / "runs"), "--experiment-name", "sam",
         "--timestamp", "run", "--max-num-iterations", "5", "--machine.device-type", "cpu", "--vis", "tensorboard",
         "--steps-per-eval-all-images", "1000", "--pipeline.datamanager.sam-cache-dir", str(root / "sam"),
+        "--pipeline.model.gear-updates.enabled", "False",
         "neural-3d-video-data", "--data", str(data), "--cache-dir", str(root / "frames"),
     ]  # fmt: skip
     cached = {p: p.stat().st_mtime_ns for p in (root / "sam").rglob("*")}

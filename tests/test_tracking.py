@@ -46,7 +46,7 @@ FAINT = 0.01
 
 @pytest.fixture(scope="module")
 def trained(tiny_run):
-    """The session's tiny gear-nerf-small run (20 iterations; no gear update fits in it)."""
+    """The session's tiny gear-nerf-small run (20 iterations, gear updates at steps 3, 6 and 9)."""
     root, scene, first, _ = tiny_run
     return root, scene, first / "config.yml"
 
