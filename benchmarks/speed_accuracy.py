@@ -625,7 +625,7 @@ def machine_description(device: str) -> str:
     import torch
 
     text = (f"{cpu}, {os.cpu_count()} logical CPUs{memory}; {platform.platform()}; Python {platform.python_version()}, "
-            f"torch {torch.__version__}")
+            f"torch {torch.__version__} with {torch.get_num_threads()} CPU thread(s) per process")
     if device == "cuda" and torch.cuda.is_available():
         properties = torch.cuda.get_device_properties(0)
         text += f"; GPU {properties.name} ({properties.total_memory / 1024 ** 3:.0f} GiB), CUDA {torch.version.cuda}"
