@@ -30,7 +30,7 @@ import tyro
 
 from environment import BIN, command_environment
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 
 
@@ -105,7 +105,7 @@ class FootprintBenchmark:
         checkpoint = sorted((folder / "nerfstudio_models").glob("step-*.ckpt"))[-1]
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)["pipeline"]
         field_state = {k[len("_model.field."):]: v for k, v in state.items() if k.startswith("_model.field.")}
-        used = field_state["used_gears"]
+        used = field_state["used_columns"].flatten(1).any(dim=1)  # GearField.used_gears
         unused_planes = sum(
             v.numel() for k, v in field_state.items()
             if k.startswith("time_planes.") and not bool(used[int(k.split(".")[1])])

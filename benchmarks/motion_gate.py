@@ -51,7 +51,8 @@ class MotionGateBenchmark:
         from nerfstudio.data.datasets.base_dataset import InputDataset
 
         from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
-        from gear_nerfstudio.gear_updates import GearUpdateConfig, frame_change, patch_means, patch_size_for
+        from gear_nerfstudio.gears.config import GearUpdateConfig
+        from gear_nerfstudio.gears.loss_maps import frame_change, patch_means, patch_size_for
 
         config = GearUpdateConfig()
         parser = TechnicolorDataParserConfig(

@@ -29,7 +29,7 @@ from nerfstudio.engine.optimizers import Optimizers
 
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf_small
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 SPEC = SyntheticSpec(dataset="n3d", width=64, height=48, frames=4, cameras=6)
 

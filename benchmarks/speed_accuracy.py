@@ -5,7 +5,7 @@ One command trains and evaluates every (scene, method, seed), one run after the 
 
     .venv/bin/python benchmarks/speed_accuracy.py --output outputs/speed_accuracy --results benchmarks/results
 
-Scenes (``SCENES``): synthetic scenes with ground truth (``gear_nerfstudio.synthetic``, Neural 3D Video format,
+Scenes (``SCENES``): synthetic scenes with ground truth (``gear_nerfstudio.tools.synthetic``, Neural 3D Video format,
 held-out camera cam00; moving pixels from the ground-truth motion) at two sizes, and the real capture
 ``panoptic_basketball`` (Technicolor layout, held-out camera 06, which has foreground masks of the moving
 people; ``../shared/data/real/SOURCES.md``).
@@ -38,13 +38,17 @@ What is measured, and how:
   frames: the share of moving pixels at gear >= 2 and of static pixels at gear 1 (synthetic: ground-truth
   motion > 0; real: the foreground masks).
 * Render FPS, samples per ray, parameters (all, and in use), gear updates run (from the checkpoint), peak RSS.
-* Equal iterations: the last checkpoint. Equal wall-clock time (the headline): per scene, a time budget (the
+* Equal iterations: the last checkpoint. Equal training time (the headline): per scene, a time budget (the
   shortest mean total training time of the main methods, or ``--time-budget``); each run is scored at its
-  last checkpoint within the budget. Means and sample standard deviations are over seeds.
+  last checkpoint within the budget. On the CPU the headline clock is the CPU time of the training process
+  (run it single-threaded, ``OMP_NUM_THREADS=1``: then it equals the wall-clock time of an idle machine and
+  does not depend on what else the machine runs); the wall-clock table follows. On CUDA the headline is the
+  wall-clock time. Means and sample standard deviations are over seeds.
 
 Writes ``<output>/speed_accuracy.md`` (tables, targets, command, machine, date), ``<output>/speed_accuracy.png``
 (PSNR against training time per scene, mean and range over seeds) and ``<output>/records.json``; with
-``--results DIR`` the markdown and the plot are copied there too.
+``--results DIR`` the markdown and the plot are copied there too. ``--report-only`` writes them from the run
+records already in the output folder (from one or several earlier invocations), without training.
 """
 
 from __future__ import annotations
@@ -75,6 +79,9 @@ TRAIN_CHILD = "_train"
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 """The real captures (``../shared/data/real`` next to the repository)."""
 
+Clock = Literal["seconds", "cpu_seconds"]
+"""A checkpoint's training time: wall-clock or CPU seconds of the training process."""
+
 METHODS: Dict[str, str] = {
     "gear-nerf": "Gear-NeRF",
     "kplanes": "plain K-Planes (N_gear = 1) with L_SAM",
@@ -91,18 +98,18 @@ METHODS: Dict[str, str] = {
 
 def method_overrides(method: str, frames: int) -> List[str]:
     """``ns-train`` overrides of a method on top of the base preset."""
-    no_sam = ["--pipeline.datamanager.use-sam-features", "False", "--pipeline.model.gear-updates.sam-loss-weight", "0"]
+    no_sam = ["--pipeline.datamanager.use-sam-features", "False", "--pipeline.gear-updates.sam-loss-weight", "0"]
     single = ["--pipeline.model.num-gears", "1"]
     overrides = {
         "gear-nerf": [],
         "kplanes": single,
         "no-split": ["--pipeline.model.split-base", "1"],
-        "no-updates": ["--pipeline.model.gear-updates.enabled", "False"],
+        "no-updates": ["--pipeline.gear-updates.enabled", "False"],
         "gear-nerf-no-sam": no_sam,
         "kplanes-no-sam": [*single, *no_sam],
         "uniform-128": [*single, "--pipeline.model.num-samples", "128"],
         "naive-medium": [*single, "--pipeline.model.time-resolutions", str(max(1, math.ceil(frames / 2)))],
-        "no-embedding": [*no_sam, "--pipeline.model.gear-updates.mask-source", "loss_threshold"],
+        "no-embedding": [*no_sam, "--pipeline.gear-updates.mask-source", "loss_threshold"],
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
@@ -132,7 +139,7 @@ class Scene:
         """Generate a synthetic scene (kept when one of the same spec is there)."""
         if not self.synthetic:
             return
-        from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+        from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
         spec = SyntheticSpec(dataset="n3d", **self.synthetic)
         scene = self.folder(output)
@@ -218,6 +225,8 @@ class SpeedAccuracyBenchmark:
     """Equal-time budget in seconds for every scene; default per scene (see ``main_methods``)."""
     reuse_runs: bool = False
     """Skip training a run whose record (same command) is already in the output folder."""
+    report_only: bool = False
+    """Train nothing: write the tables and plot from the records of every planned run in the output folder."""
 
     def main(self) -> None:
         if self.device == "cpu":
@@ -233,7 +242,8 @@ class SpeedAccuracyBenchmark:
         records: List[Dict[str, Any]] = []
         for name in self.scenes:
             scene = SCENES[name]
-            scene.write(self.output)
+            if not self.report_only:
+                scene.write(self.output)
             ablations = self.ablations if name in self.ablation_scenes else ()
             for method in (*self.main_methods, *ablations):
                 for seed in range(42, 42 + (self.seeds if method in self.main_methods else 1)):
@@ -293,6 +303,10 @@ class SpeedAccuracyBenchmark:
         command = self.train_command(scene, method, seed)
         run_dir = self.output / "runs" / scene.name / self.base_preset / f"{method}-seed{seed}"
         record_path = run_dir / "benchmark_record.json"
+        if self.report_only:
+            if not record_path.is_file():
+                raise FileNotFoundError(f"{record_path}: no record of {scene.name} / {method} / {seed} to report")
+            return json.loads(record_path.read_text())
         if self.reuse_runs and record_path.is_file():
             record = json.loads(record_path.read_text())
             if record.get("command") == command:
@@ -347,15 +361,44 @@ class Report:
     def methods(self, scene: str) -> List[str]:
         return list(dict.fromkeys(r["method"] for r in self.records if r["scene"] == scene))
 
-    def budget(self, scene: str) -> float:
-        """Equal-time budget of a scene: ``--time-budget``, or the shortest mean training time of the main methods."""
+    @property
+    def headline_clock(self) -> Clock:
+        """CPU time of the training process on the CPU, wall-clock time on CUDA."""
+        return "cpu_seconds" if self.benchmark.device == "cpu" else "seconds"
+
+    def budget(self, scene: str, clock: Optional[Clock] = None) -> float:
+        """Equal-time budget of a scene on a clock (default the headline's): ``--time-budget``, or the shortest
+        mean training time of the main methods."""
         if self.benchmark.time_budget is not None:
             return self.benchmark.time_budget
-        means = [np.mean([r["train_seconds"] for r in self.runs(scene, m)]) for m in self.benchmark.main_methods]
+        total = "train_" + (clock or self.headline_clock)
+        means = [np.mean([r[total] for r in self.runs(scene, m)]) for m in self.benchmark.main_methods]
         return float(min(m for m in means if not np.isnan(m)))
 
-    def at_budget(self, scene: str, method: str) -> List[Optional[Dict[str, Any]]]:
-        return [at_budget(r, self.budget(scene)) for r in self.runs(scene, method)]
+    def at_budget(self, scene: str, method: str, clock: Optional[Clock] = None) -> List[Optional[Dict[str, Any]]]:
+        clock = clock or self.headline_clock
+        return [at_budget(r, self.budget(scene, clock), clock) for r in self.runs(scene, method)]
+
+    def equal_time_table(self, clock: Clock) -> List[str]:
+        """Each run at its last checkpoint within the scene's budget on this clock."""
+        lines = [
+            "| scene | budget (s) | method | n | iteration reached | PSNR | SSIM | LPIPS |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for scene in self.scenes:
+            budget = self.budget(scene, clock)
+            for method in self.methods(scene):
+                points = self.at_budget(scene, method, clock)
+                if any(p is None for p in points):
+                    lines.append(f"| {scene} | {budget:.0f} | {METHODS[method]} | {len(points)} | "
+                                 "a run has no checkpoint within the budget | | | |")
+                    continue
+                lines.append(
+                    f"| {scene} | {budget:.0f} | {METHODS[method]} | {len(points)} | "
+                    f"{spread([p['step'] + 1 for p in points], 0)} | {spread([p['psnr'] for p in points])} | "
+                    f"{spread([p['ssim'] for p in points], 3)} | {lpips_of(points)} |"
+                )
+        return lines
 
     def finals(self, scene: str, method: str) -> List[Dict[str, Any]]:
         return [r["checkpoints"][-1] for r in self.runs(scene, method)]
@@ -377,26 +420,19 @@ class Report:
             "",
         ]
         lines += [f"- `{name}`: {SCENES[name].description}; held-out camera {SCENES[name].held_out}." for name in self.scenes]
-        lines += ["", "![PSNR against training time](speed_accuracy.png)", "", "## Equal wall-clock time (headline)", ""]
-        lines += [
+        budget_rule = (
             "Each run at its last checkpoint within the scene's budget (the shortest mean total training time of "
-            + ", ".join(METHODS[m] for m in b.main_methods) + ").",
-            "",
-            "| scene | budget (s) | method | n | iteration reached | PSNR | SSIM | LPIPS |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
-        for scene in self.scenes:
-            for method in self.methods(scene):
-                points = self.at_budget(scene, method)
-                if any(p is None for p in points):
-                    lines.append(f"| {scene} | {self.budget(scene):.0f} | {METHODS[method]} | {len(points)} | "
-                                 "a run has no checkpoint within the budget | | | |")
-                    continue
-                lines.append(
-                    f"| {scene} | {self.budget(scene):.0f} | {METHODS[method]} | {len(points)} | "
-                    f"{spread([p['step'] + 1 for p in points], 0)} | {spread([p['psnr'] for p in points])} | "
-                    f"{spread([p['ssim'] for p in points], 3)} | {lpips_of(points)} |"
-                )
+            + ", ".join(METHODS[m] for m in b.main_methods) + ")"
+        )
+        lines += ["", "![PSNR against training time](speed_accuracy.png)", ""]
+        if self.headline_clock == "cpu_seconds":
+            lines += ["## Equal training CPU time (headline)", "", budget_rule + ", in CPU seconds of the "
+                      "single-threaded training process.", "", *self.equal_time_table("cpu_seconds"), ""]
+            lines += ["## Equal wall-clock time", "", budget_rule + ", in wall-clock seconds (these depend on what "
+                      "else the machine ran at the same time; see the load below).", ""]
+        else:
+            lines += ["## Equal wall-clock time (headline)", "", budget_rule + ".", ""]
+        lines += self.equal_time_table("seconds")
         lines += [
             "",
             "## Equal iterations",
@@ -444,6 +480,7 @@ class Report:
         lines = []
         for scene in self.scenes:
             gear, kplanes = self.at_budget(scene, "gear-nerf"), self.at_budget(scene, "kplanes")
+            clock = "CPU" if self.headline_clock == "cpu_seconds" else "wall-clock"
             finals = self.finals(scene, "gear-nerf")
             if not gear or not kplanes or any(p is None for p in (*gear, *kplanes)):
                 lines.append(f"- {scene}: not evaluated (needs gear-nerf and kplanes runs within the budget).")
@@ -455,7 +492,7 @@ class Report:
             required = 0.0 if scene == "panoptic" else 0.5
             moving_target = 0.5 if scene == "panoptic" else 0.8
             lines.append(
-                f"- {scene}: Gear-NeRF {gain:+.2f} dB against plain K-Planes with L_SAM at equal wall time "
+                f"- {scene}: Gear-NeRF {gain:+.2f} dB against plain K-Planes with L_SAM at equal {clock} time "
                 f"(target >= {required:+.1f}: {'met' if gain >= required else 'not met'}); at least {updates} gear "
                 f"updates per run (target >= 2: {'met' if updates >= 2 else 'not met'}); "
                 + (f"{100 * np.mean(moving):.0f} % of moving pixels at gear >= 2 (target >= {100 * moving_target:.0f} %: "
@@ -478,7 +515,7 @@ class Report:
         for axis, scene in zip(axes.flat, self.scenes):
             for method in self.methods(scene):
                 runs = self.runs(scene, method)
-                seconds = np.mean([[p["seconds"] for p in r["checkpoints"]] for r in runs], axis=0)
+                seconds = np.mean([[p[self.headline_clock] for p in r["checkpoints"]] for r in runs], axis=0)
                 psnrs = np.array([[p["psnr"] for p in r["checkpoints"]] for r in runs])
                 line = axis.plot(seconds, psnrs.mean(axis=0), marker="o", markersize=3,
                                  label=f"{METHODS[method]} (n={len(runs)})")[0]
@@ -486,7 +523,7 @@ class Report:
                     axis.fill_between(seconds, psnrs.min(axis=0), psnrs.max(axis=0), color=line.get_color(), alpha=0.15)
             axis.axvline(self.budget(scene), color="grey", linestyle="--", linewidth=0.8)
             axis.set_title(f"{scene}")
-            axis.set_xlabel("training time (s)")
+            axis.set_xlabel("training CPU time (s)" if self.headline_clock == "cpu_seconds" else "training time (s)")
             axis.set_ylabel("held-out PSNR (dB)")
             axis.grid(alpha=0.3)
             axis.legend(fontsize=6)
@@ -517,14 +554,14 @@ def lpips_of(points: List[Dict[str, Any]]) -> str:
     return "missing" if len(values) < len(points) else spread(values, 3)
 
 
-def at_budget(run: Dict[str, Any], budget: float) -> Optional[Dict[str, Any]]:
-    """The last checkpoint of a run whose training time is within the budget (1 ms tolerance)."""
-    within = [p for p in run["checkpoints"] if p["seconds"] <= budget + 1e-3]
+def at_budget(run: Dict[str, Any], budget: float, clock: Clock) -> Optional[Dict[str, Any]]:
+    """The last checkpoint of a run whose training time on the clock is within the budget (1 ms tolerance)."""
+    within = [p for p in run["checkpoints"] if p[clock] <= budget + 1e-3]
     return within[-1] if within else None
 
 
 def has_lpips() -> bool:
-    from gear_nerfstudio.gear_model import lpips_weights_path
+    from gear_nerfstudio.model.gear_model import lpips_weights_path
 
     return lpips_weights_path().is_file()
 
@@ -588,6 +625,7 @@ def evaluate_checkpoints(
             {
                 "step": int(entry["step"]),
                 "seconds": float(entry["seconds"]),
+                "cpu_seconds": float(entry["cpu_seconds"]),
                 "psnr": float(np.mean(metrics["psnr"])),
                 "ssim": float(np.mean(metrics["ssim"])),
                 "lpips": float(np.mean(metrics["lpips"])) if metrics["lpips"] else None,
@@ -595,7 +633,7 @@ def evaluate_checkpoints(
                 "samples_per_ray": samples / pixels,
                 "moving_at_gear_2": moving_up / moving_all if moving_all else None,
                 "static_at_gear_1": static_low / static_all,
-                "gear_updates": int(model.gear_update_state.num_updates),
+                "gear_updates": int(pipeline.gear_update_state.num_updates),
                 "parameters": int(total),
                 "parameters_in_use": int(total - unused),
             }

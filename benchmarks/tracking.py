@@ -32,9 +32,9 @@ from environment import BIN, command_environment
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
-from gear_nerfstudio.track_metrics import accuracy, iou
-from gear_nerfstudio.tracking import track
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.tracking.metrics import accuracy, iou
+from gear_nerfstudio.tracking.propagation import track
 
 OBJECT_NAMES = {1: "static sphere", 2: "slow sphere", 3: "fast sphere"}
 PROPAGATIONS = ("box", "embedding")

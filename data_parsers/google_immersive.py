@@ -27,7 +27,8 @@ from gear_nerfstudio.data_parsers.multiview import (
     MultiViewVideoDataParserConfig,
     ParsedRig,
 )
-from gear_nerfstudio.frame_cache import DatasetError, cache_video_frames, video_info
+from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.data.frame_cache import cache_video_frames, video_info
 
 VIDEO_PATTERN = re.compile(r"^camera_\d{4}\.mp4$")
 REQUIRED_KEYS = (

@@ -28,7 +28,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 
-from gear_nerfstudio.frame_cache import DatasetError
+from gear_nerfstudio.data.errors import DatasetError
 
 
 @dataclass

@@ -22,7 +22,8 @@ from gear_nerfstudio.data_parsers.multiview import (
     MultiViewVideoDataParserConfig,
     ParsedRig,
 )
-from gear_nerfstudio.frame_cache import DatasetError, cache_video_frames, video_info
+from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.data.frame_cache import cache_video_frames, video_info
 
 VIDEO_PATTERN = re.compile(r"^cam\d{2}\.mp4$")
 UNSYNCHRONISED = {"coffee_martini": ("cam13",)}

@@ -22,7 +22,8 @@ from gear_nerfstudio.data_parsers.multiview import (
     MultiViewVideoDataParserConfig,
     ParsedRig,
 )
-from gear_nerfstudio.frame_cache import DatasetError, cache_image_frames
+from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.data.frame_cache import cache_image_frames
 
 FRAME_PATTERN = re.compile(r"^(?P<scene>.+)_undist_(?P<frame>\d{5})_(?P<cam>\d{2})\.png$")
 CAMERA_COLUMNS = 12

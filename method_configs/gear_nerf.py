@@ -13,15 +13,15 @@ from typing import List
 
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
-from gear_nerfstudio.schedulers import FloatCosineDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from gear_nerfstudio.data.datamanager import GearDataManagerConfig
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
-from gear_nerfstudio.gear_datamanager import GearDataManagerConfig
-from gear_nerfstudio.gear_model import GearNeRFModelConfig
-from gear_nerfstudio.gear_updates import GearUpdateConfig
+from gear_nerfstudio.gears.config import GearUpdateConfig
+from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.pipeline import GearPipelineConfig
+from gear_nerfstudio.schedulers import FloatCosineDecaySchedulerConfig
 
 LEARNING_RATE = 0.02
 """Initial learning rate for all parameters (Sec 5.1)."""
@@ -33,13 +33,14 @@ its own default iterations as its epoch for L and L' (Sec 4.3)."""
 def schedule_options(iterations: int) -> List[str]:
     """``ns-train`` options that scale the gear-update schedule to a run of this many iterations, as the presets
     do (an epoch is 1/20 of the run): for commands that train a preset for fewer iterations than its default."""
-    return ["--pipeline.model.gear-updates.iterations-per-epoch", str(max(1, iterations // EPOCHS_PER_RUN))]
+    return ["--pipeline.gear-updates.iterations-per-epoch", str(max(1, iterations // EPOCHS_PER_RUN))]
 
 
 def trainer_config(
     method_name: str, model: GearNeRFModelConfig, num_rays_per_batch: int, max_num_iterations: int, warmup: int
 ) -> TrainerConfig:
-    """A trainer with Adam (cosine decay after a warmup, as K-Planes) for every parameter group.
+    """A trainer with Adam (cosine decay after a warmup, as K-Planes) for every parameter group, and gear
+    updates with epochs of 1/20 of ``max_num_iterations``.
 
     The gear function ("gear_field") gets Adam at the same rate without a schedule; the radiance loss
     never reaches it, so only the gear-update step (Sec 4.3) moves it.
@@ -59,7 +60,7 @@ def trainer_config(
         steps_per_eval_all_images=max_num_iterations,
         max_num_iterations=max_num_iterations,
         mixed_precision=False,
-        pipeline=VanillaPipelineConfig(
+        pipeline=GearPipelineConfig(
             datamanager=GearDataManagerConfig(
                 dataparser=TechnicolorDataParserConfig(),
                 train_num_rays_per_batch=num_rays_per_batch,
@@ -70,6 +71,7 @@ def trainer_config(
                 eval_num_times_to_repeat_images=100,
             ),
             model=model,
+            gear_updates=GearUpdateConfig(iterations_per_epoch=max_num_iterations // EPOCHS_PER_RUN),
         ),
         optimizers={
             "fields": radiance_optimizer(),
@@ -105,20 +107,13 @@ def small_model(num_gears: int) -> GearNeRFModelConfig:
         sam_head_dim=16,
         num_samples=24,
         eval_num_rays_per_chunk=1024,
-        gear_updates=GearUpdateConfig(iterations_per_epoch=SMALL_ITERATIONS // EPOCHS_PER_RUN),
     )
 
 
 gear_nerf = MethodSpecification(
     config=trainer_config(
         "gear-nerf",
-        GearNeRFModelConfig(
-            num_gears=4,
-            feature_dim=32,
-            num_samples=64,
-            eval_num_rays_per_chunk=4096,
-            gear_updates=GearUpdateConfig(iterations_per_epoch=PAPER_ITERATIONS // EPOCHS_PER_RUN),
-        ),
+        GearNeRFModelConfig(num_gears=4, feature_dim=32, num_samples=64, eval_num_rays_per_chunk=4096),
         num_rays_per_batch=4096,
         max_num_iterations=PAPER_ITERATIONS,
         warmup=512,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -72,7 +72,7 @@ def tiny_run(tmp_path_factory):
     common = [
         "--output-dir", str(root / "runs"), "--experiment-name", "tiny", "--machine.device-type", "cpu",
         "--vis", "tensorboard", "--steps-per-save", "10", "--steps-per-eval-all-images", "1000",
-        "--pipeline.model.gear-updates.iterations-per-epoch", "1",
+        "--pipeline.gear-updates.iterations-per-epoch", "1",
     ]
     data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache")]
     ns("ns-train", "gear-nerf-small", *common, "--timestamp", "first", "--max-num-iterations", "20", *data, cwd=root)

@@ -8,8 +8,8 @@ import shutil
 import numpy as np
 import pytest
 
-from gear_nerfstudio.frame_cache import DatasetError
-from gear_nerfstudio.synthetic.writers import write_video
+from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.tools.synthetic.writers import write_video
 from tests.test_dataparsers import parse
 
 

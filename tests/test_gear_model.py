@@ -8,7 +8,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.model_components.scene_colliders import AABBBoxCollider, NearFarCollider
 
-from gear_nerfstudio.gear_model import GearNeRFModelConfig, lpips_weights_path
+from gear_nerfstudio.model.gear_model import GearNeRFModelConfig, lpips_weights_path
 
 OUTPUT_KEYS = {"rgb", "depth", "accumulation", "sam", "gear_level", "gear", "num_samples"}
 METADATA = {"near": 0.5, "far": 4.5, "num_frames": 6, "unbounded": False}

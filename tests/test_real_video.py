@@ -21,7 +21,7 @@ def test_ns_train_runs_gear_updates_on_real_video_and_ns_eval_scores_it(tmp_path
     result = ns(
         "ns-train", "gear-nerf-small", "--output-dir", str(tmp_path / "runs"), "--experiment-name", "real",
         "--timestamp", "run", "--max-num-iterations", "40", "--machine.device-type", "cpu", "--vis", "tensorboard",
-        "--steps-per-eval-all-images", "100000", "--pipeline.model.gear-updates.iterations-per-epoch", "2",
+        "--steps-per-eval-all-images", "100000", "--pipeline.gear-updates.iterations-per-epoch", "2",
         "--pipeline.datamanager.sam-cache-dir", str(tmp_path / "sam"),
         "technicolor-data", "--data", str(CAPTURE), "--near", "0.3", "--far", "7", "--frame-count", "6",
         "--held-out-camera", "06", "--cache-dir", str(tmp_path / "frames"), cwd=tmp_path,

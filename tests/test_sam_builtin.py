@@ -18,10 +18,10 @@ import pytest
 from scipy import ndimage
 
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
-from gear_nerfstudio.sam.config import SamConfig
+from gear_nerfstudio.sam.config import BuiltinSamConfig
 from gear_nerfstudio.sam.interface import Embedding, valid_grid
-from gear_nerfstudio.synthetic.scene import SyntheticScene
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
+from gear_nerfstudio.tools.synthetic.scene import SyntheticScene
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
 
 Frame = Tuple[np.ndarray, np.ndarray]  # rgb (H, W, 3), object ids (H, W)
 
@@ -104,7 +104,7 @@ def test_embedding_geometry(backend):
 
 def test_settings_and_config(backend):
     assert backend.settings == BuiltinSamBackend().settings
-    assert isinstance(SamConfig().setup(), BuiltinSamBackend)
+    assert isinstance(BuiltinSamConfig().setup(), BuiltinSamBackend)
 
 
 @pytest.mark.parametrize("name", ["64x48", "video96x72", "160x120"])

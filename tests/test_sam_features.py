@@ -2,25 +2,27 @@
 
 from __future__ import annotations
 
+import copy
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
-from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from PIL import Image
 
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
-from gear_nerfstudio.gear_datamanager import GearDataManagerConfig
+from gear_nerfstudio.data.datamanager import GearDataManagerConfig
+from gear_nerfstudio.method_configs.gear_nerf import gear_nerf_small
+from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import cell_centres, sample_features
-from gear_nerfstudio.sam_features import SamFeatureCache, read_header
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.sam.feature_cache import SamFeatureCache, read_header
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 BIN = Path(sys.executable).parent
 SPEC = SyntheticSpec(dataset="n3d", width=24, height=18, frames=2, cameras=3)  # 4 training, 2 held-out images
@@ -144,17 +146,24 @@ def datamanager_config(root: Path, data: Path, **kwargs) -> GearDataManagerConfi
     )
 
 
+def attached(config: GearDataManagerConfig):
+    """A datamanager with the built-in SAM backend attached, as the pipeline attaches its backend."""
+    manager = config.setup(device="cpu", test_mode="val")
+    manager.attach_sam(BuiltinSamBackend())
+    return manager
+
+
 @pytest.fixture(scope="module")
 def datamanager(scene):
     root, data = scene
-    return datamanager_config(root, data).setup(device="cpu", test_mode="val")
+    return attached(datamanager_config(root, data))
 
 
 def test_batches_carry_the_cached_features_at_pixel_centres(datamanager):
     for step in range(3):
         _, batch = datamanager.next_train(step)
         indices, features = batch["indices"], batch["sam_features"]
-        assert features.shape == (256, datamanager.sam_backend.embedding_dim) and features.dtype == torch.float32
+        assert features.shape == (256, BuiltinSamBackend().embedding_dim) and features.dtype == torch.float32
         for image_index in indices[:, 0].unique().tolist():
             rows = indices[:, 0] == image_index
             embedding = datamanager.train_embedding(image_index)
@@ -170,20 +179,32 @@ def test_second_setup_and_ablation_never_run_the_encoder(scene, datamanager, mon
     encode = BuiltinSamBackend.encode
     monkeypatch.setattr(BuiltinSamBackend, "encode", lambda self, image: calls.append(1) or encode(self, image))
     root, data = scene
-    again = datamanager_config(root, data).setup(device="cpu", test_mode="val")
+    again = attached(datamanager_config(root, data))
     assert "sam_features" in again.next_train(0)[1] and not calls
 
     ablation = datamanager_config(root, data, use_sam_features=False, sam_cache_dir=root / "unused")
-    manager = ablation.setup(device="cpu", test_mode="val")
+    manager = attached(ablation)
     assert "sam_features" not in manager.next_train(0)[1] and "sam_features" not in manager.next_eval(0)[1]
     assert not calls and not (root / "unused").exists()
 
 
-def test_sam_dim_mismatch_is_a_clear_error(datamanager):
-    model = SimpleNamespace(config=SimpleNamespace(sam_dim=64))
-    attributes = TrainingCallbackAttributes(None, None, SimpleNamespace(model=model), None)
+def test_sam_dim_mismatch_is_a_clear_error(scene, tmp_path):
+    """The pipeline checks at set-up that the model's SAM head predicts the backend's C."""
+    root, data = scene
+    config = copy.deepcopy(gear_nerf_small.config.pipeline)
+    config.datamanager = datamanager_config(root, data)
+    config.model.sam_dim = 64
     with pytest.raises(ValueError, match="sam_dim is 64 but the SAM backend 'builtin' gives 256"):
-        datamanager.get_training_callbacks(attributes)
+        config.setup(device="cpu", test_mode="val")
+
+
+def test_datamanager_without_a_backend_is_a_clear_error(scene):
+    """The SAM backend comes from the pipeline: in a plain VanillaPipeline the datamanager says so."""
+    root, data = scene
+    config = VanillaPipelineConfig(datamanager=datamanager_config(root, data), model=GearNeRFModelConfig())
+    pipeline = config.setup(device="cpu", test_mode="val")
+    with pytest.raises(RuntimeError, match="no SAM backend: use it in a GearPipelineConfig"):
+        pipeline.datamanager.next_train(0)
 
 
 def test_ns_train_optimises_the_sam_loss(scene, datamanager, tmp_path):
@@ -194,7 +215,7 @@ def test_ns_train_optimises_the_sam_loss(scene, datamanager, tmp_path):
         str(BIN / "ns-train"), "gear-nerf-small", "--output-dir", str(tmp_path / "runs"), "--experiment-name", "sam",
         "--timestamp", "run", "--max-num-iterations", "5", "--machine.device-type", "cpu", "--vis", "tensorboard",
         "--steps-per-eval-all-images", "1000", "--pipeline.datamanager.sam-cache-dir", str(root / "sam"),
-        "--pipeline.model.gear-updates.enabled", "False",
+        "--pipeline.gear-updates.enabled", "False",
         "neural-3d-video-data", "--data", str(data), "--cache-dir", str(root / "frames"),
     ]  # fmt: skip
     cached = {p: p.stat().st_mtime_ns for p in (root / "sam").rglob("*")}

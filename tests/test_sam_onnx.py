@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from gear_nerfstudio.sam.config import SamConfig
+from gear_nerfstudio.sam.config import BuiltinSamConfig, OnnxSamConfig
 from gear_nerfstudio.sam.interface import Embedding
 from gear_nerfstudio.sam.onnx_backend import (
     OnnxSamBackend,
@@ -28,6 +28,8 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")  # torch.onnx.export needs it
 
 from segment_anything import SamPredictor  # noqa: E402
+
+from tests.conftest import command  # noqa: E402
 from segment_anything.modeling import ImageEncoderViT, MaskDecoder, PromptEncoder, Sam, TwoWayTransformer  # noqa: E402
 from segment_anything.utils.onnx import SamOnnxModel  # noqa: E402
 from segment_anything.utils.transforms import ResizeLongestSide  # noqa: E402
@@ -234,11 +236,11 @@ def test_settings_name_both_files(backend, onnx_files):
 
 
 def test_config_builds_backends(onnx_files):
-    config = SamConfig(backend="onnx", encoder=onnx_files["encoder"], decoder=onnx_files["decoder"])
+    config = OnnxSamConfig(encoder=onnx_files["encoder"], decoder=onnx_files["decoder"])
     assert isinstance(config.setup(), OnnxSamBackend)
     with pytest.raises(SamModelError, match="encoder"):
-        SamConfig(backend="onnx", decoder=onnx_files["decoder"]).setup()
-    assert SamConfig().setup().name == "builtin"
+        OnnxSamConfig(decoder=onnx_files["decoder"]).setup()
+    assert BuiltinSamConfig().setup().name == "builtin"
 
 
 @pytest.mark.parametrize(
@@ -263,6 +265,22 @@ def test_bad_model_files_fail_clearly(onnx_files, tmp_path, encoder, decoder, me
     assert isinstance(error.value, ValueError)
     bad = files[encoder] if encoder != "encoder" else files[decoder]
     assert str(bad) in str(error.value)
+
+
+def test_ns_train_offers_the_onnx_backend(onnx_files, scene_dirs, tmp_path):
+    """`sam-onnx` on the ns-train command line builds the ONNX backend from its files: a missing encoder stops the
+    run before training with the backend's error, naming the file."""
+    missing = tmp_path / "nowhere.onnx"
+    result = command(
+        "ns-train", "gear-nerf-small", "--output-dir", str(tmp_path / "runs"), "--machine.device-type", "cpu",
+        "--vis", "tensorboard", "neural-3d-video-data", "--data", str(scene_dirs["n3d"]),
+        "--cache-dir", str(tmp_path / "cache"), "sam-onnx", "--encoder", str(missing),
+        "--decoder", str(onnx_files["decoder"]), cwd=tmp_path,
+    )
+    assert result.returncode != 0
+    last = result.stderr.strip().splitlines()[-1]
+    assert "SamModelError" in last and str(missing) in last and "does not exist" in last, result.stderr[-2000:]
+    assert not list((tmp_path / "runs").rglob("*.ckpt"))
 
 
 def test_onnxruntime_is_imported_only_when_needed():

@@ -7,7 +7,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.model_components.ray_samplers import UniformSampler
 from nerfstudio.model_components.renderers import AccumulationRenderer, DepthRenderer, RGBRenderer
 
-from gear_nerfstudio.split_sampler import SplitSampler, split_ray_samples
+from gear_nerfstudio.model.split_sampler import SplitSampler, split_ray_samples
 
 
 def ray_bundle(num_rays: int = 6, seed: int = 0) -> RayBundle:

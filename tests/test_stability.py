@@ -19,17 +19,20 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.model_components.renderers import RGBRenderer
 from nerfstudio.model_components.ray_samplers import UniformSampler
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
 from gear_nerfstudio.data_parsers.google_immersive import GoogleImmersiveDataParserConfig
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
-from gear_nerfstudio.frame_cache import DatasetError
-from gear_nerfstudio.gear_datamanager import GearDataManagerConfig
-from gear_nerfstudio.gear_field import GearField, ProposalDensityField, gear_level, temporal_resolutions
-from gear_nerfstudio.gear_model import GearNeRFModelConfig
-from gear_nerfstudio.split_sampler import split_ray_samples
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.data.datamanager import GearDataManagerConfig
+from gear_nerfstudio.fields.gear_field import GearField, temporal_resolutions
+from gear_nerfstudio.fields.gear_function import gear_level
+from gear_nerfstudio.fields.proposal_field import ProposalDensityField
+from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.model.split_sampler import split_ray_samples
+from gear_nerfstudio.pipeline import GearPipelineConfig
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from tests.test_gear_field import evaluate
 from tests.test_gear_model import OUTPUT_KEYS, force_gears_in_upper_half, make_batch, make_model, make_rays
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -111,7 +114,7 @@ def test_field_density_is_finite_and_non_negative_for_any_raw_output(raw):
     field = GearField(AABB, num_frames=3, feature_dim=8, resolutions=(8,), gear_resolution=8, hidden_dim=16)
     set_raw_density(field, raw)
     positions = torch.rand(20, 3) * 2.4 - 1.2
-    outputs = field(positions, torch.randn(20, 3), torch.rand(20, 1))
+    outputs = evaluate(field, positions, torch.randn(20, 3), torch.rand(20, 1))
     density = outputs["density"]
     assert torch.isfinite(density).all() and (density >= 0).all()
     assert all(torch.isfinite(v.float()).all() for v in outputs.values())
@@ -151,7 +154,7 @@ def test_infinite_density_on_a_zero_length_segment_leaves_the_rest_of_the_ray_un
     """Eq 1: a segment with delta = 0 contributes alpha = 0 whatever sigma is; it must not blank the ray."""
     field = GearField(AABB, num_frames=1, feature_dim=8, resolutions=(8,), gear_resolution=8, hidden_dim=16)
     set_raw_density(field, 500.0)  # exp(499) is inf in float32
-    density = field(torch.zeros(1, 3), torch.randn(1, 3))["density"]
+    density = evaluate(field, torch.zeros(1, 3), torch.randn(1, 3), None)["density"]
     rays = bundle(torch.zeros(1, 3), torch.tensor([[0.0, 0.0, 1.0]]), None, None, None)
     starts = torch.tensor([[0.1], [0.2], [0.2], [0.3]])
     ends = torch.tensor([[0.2], [0.2], [0.3], [0.4]])  # the second segment has zero length
@@ -294,7 +297,7 @@ def test_one_frame_one_training_camera_trains_and_evaluates(tmp_path):
     train = parser.setup().get_dataparser_outputs("train")
     assert len(train.image_filenames) == 1 and train.metadata["num_frames"] == 1
     assert train.cameras.times.tolist() == [[0.0]]
-    config = VanillaPipelineConfig(
+    config = GearPipelineConfig(
         datamanager=GearDataManagerConfig(
             dataparser=parser, train_num_rays_per_batch=32, eval_num_rays_per_batch=32, sam_cache_dir=tmp_path / "sam"
         ),
@@ -500,6 +503,6 @@ def test_unbounded_contraction_of_points_at_huge_distances():
         spatial_distortion=SceneContraction(order=float("inf")),
     )
     positions = torch.tensor([[1e30, -1e30, 0.0], [1e-30, 0.0, 0.0], [3e38, 0.0, -3e38], [5.0, 5.0, 5.0]])
-    outputs = field(positions, torch.randn(4, 3), torch.tensor([[0.0], [1.0], [0.5], [1.0]]))
+    outputs = evaluate(field, positions, torch.randn(4, 3), torch.tensor([[0.0], [1.0], [0.5], [1.0]]))
     assert all(torch.isfinite(v.float()).all() for v in outputs.values())
     assert torch.isfinite(field.gear_values(positions, torch.zeros(4, 1))).all()

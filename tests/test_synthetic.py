@@ -9,8 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from gear_nerfstudio.synthetic.scene import SyntheticScene, scene_objects
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, rig_for
+from gear_nerfstudio.tools.synthetic.scene import SyntheticScene, scene_objects
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for
 from tests.conftest import SPECS
 
 
@@ -56,7 +56,7 @@ def test_ground_truth_files(scene_dirs):
 
 def test_command_writes_all_formats(tmp_path):
     result = subprocess.run(
-        [sys.executable, "-m", "gear_nerfstudio.synthetic.cli", "--output", str(tmp_path / "scenes"),
+        [sys.executable, "-m", "gear_nerfstudio.tools.synthetic.cli", "--output", str(tmp_path / "scenes"),
          "--width", "16", "--height", "12", "--frames", "2", "--cameras", "3", "--rows", "1", "--cols", "3"],
         capture_output=True, text=True, check=True,
     )

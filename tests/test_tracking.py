@@ -14,22 +14,19 @@ import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from PIL import Image
 
-from gear_nerfstudio.track_cli import TrackCommand
+from gear_nerfstudio.tracking.cli import TrackCommand
 from tests.conftest import command as run
-from gear_nerfstudio.track_metrics import MaskScore, accuracy, iou, summarise
+from gear_nerfstudio.tracking.metrics import MaskScore, accuracy, iou, summarise
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding
-from gear_nerfstudio.synthetic.scene import SyntheticScene
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, rig_for
-from gear_nerfstudio.tracking import (
-    HIT_ACCUMULATION,
-    TrackingError,
+from gear_nerfstudio.tools.synthetic.scene import SyntheticScene
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for
+from gear_nerfstudio.tracking.click import HIT_ACCUMULATION, TrackingError, click_point, project_prompt
+from gear_nerfstudio.tracking.propagation import (
     centred_box,
-    click_point,
     locate_object,
     mask_box,
     object_features,
-    project_prompt,
     propagation_chains,
     render_embedding,
     segment,
@@ -273,7 +270,7 @@ def test_project_prompt_inverts_fisheye_and_pinhole_rays():
 
 
 def test_render_embedding_fills_the_valid_grid_and_decodes(loaded):
-    model, backend = loaded[1].model, loaded[1].datamanager.sam_backend
+    model, backend = loaded[1].model, loaded[1].sam_backend
     camera = dataset_camera(loaded[1], "cam00")
     embedding = render_embedding(model, camera, 0.5, backend)
     assert embedding.features.shape == (backend.embedding_dim, backend.grid_size, backend.grid_size)

@@ -12,6 +12,7 @@ import shutil
 import socket
 import subprocess
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -22,10 +23,11 @@ from nerfstudio.cameras.cameras import CameraType
 from PIL import Image
 from scipy import ndimage
 
-from gear_nerfstudio.synthetic.scene import RigCamera, SyntheticScene, scene_objects
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
-from gear_nerfstudio.tracking import project_prompt
-from gear_nerfstudio.viewer_tracking import Selection
+from gear_nerfstudio.tools.synthetic.scene import RigCamera, SyntheticScene, scene_objects
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.tracking.click import project_prompt
+from gear_nerfstudio.tracking.propagation import render_embedding
+from gear_nerfstudio.tracking.viewer import Selection
 from tests.conftest import BIN, ns
 
 STATIC_SPHERE, FAST_SPHERE = 1, 3
@@ -99,43 +101,62 @@ def surface_point(pipeline, scene: Path, object_id: int, frame: int, facing: str
     return outputs.dataparser_scale * (transform[:, :3] @ point + transform[:, 3])
 
 
-def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained, loaded):
-    """The "tracked_mask" output of a viewer render (camera built as the viewer builds it) highlights the
-    selected object, at the clicked time and after the time slider moved."""
+def viewer_render(model, camera):
+    """``model.get_outputs_for_camera`` as the viewer calls it: in one of its render threads."""
+    from nerfstudio.viewer.render_state_machine import RenderStateMachine
+
+    class RenderThread(RenderStateMachine):
+        def __init__(self) -> None:
+            threading.Thread.__init__(self)
+            self.outputs = None
+
+        def run(self) -> None:
+            self.outputs = model.get_outputs_for_camera(camera)
+
+    thread = RenderThread()
+    thread.start()
+    thread.join()
+    return thread.outputs
+
+
+def viewer_camera(pipeline, time_: float, width: int = 64, height: int = 48, x_shift: float = 0.0):
+    """A camera as the viewer builds it, at cam00's pose (moved sideways by x_shift) with the viewer's
+    intrinsics."""
     from nerfstudio.viewer.utils import CameraState, get_camera
+
+    c2w = pipeline.datamanager.eval_dataset.cameras.camera_to_worlds[0].clone()
+    c2w[:, 3] += x_shift * c2w[:, 0]
+    state = CameraState(
+        fov=math.radians(60.0), aspect=width / height, c2w=c2w, camera_type=CameraType.PERSPECTIVE, time=time_
+    )
+    return get_camera(state, height, width)
+
+
+def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained, loaded):
+    """The "tracked_mask" output of a viewer render highlights the selected object, at the clicked time and
+    after the time slider moved; renders that are not the viewer's (training, evaluation) never get it."""
     from nerfstudio.viewer.viewer_elements import ViewerClick
 
     _, scene, _ = trained
-    model = loaded.model
-    tracking = model.tracking
-    backend = loaded.datamanager.sam_backend
-    held_out = loaded.datamanager.eval_dataset.cameras[0:1]  # cam00's pose, the viewer's own intrinsics
+    model, tracking = loaded.model, loaded.viewer_tracking
+    held_out = loaded.datamanager.eval_dataset.cameras[0:1]
     width, height, fov = 64, 48, math.radians(60.0)
 
-    def viewer_camera(time_: float):
-        state = CameraState(
-            fov=fov, aspect=width / height, c2w=held_out.camera_to_worlds[0], camera_type=CameraType.PERSPECTIVE,
-            time=time_,
-        )
-        return get_camera(state, height, width)
-
     tracking.selection = None
-    assert "tracked_mask" not in model.get_outputs_for_camera(viewer_camera(0.0))  # nothing selected, no work
+    assert "tracked_mask" not in viewer_render(model, viewer_camera(loaded, 0.0))  # nothing selected, no work
 
     # A click whose ray leaves the scene selects nothing and says why.
     centre = held_out.camera_to_worlds[0, :, 3]
     away = ViewerClick(tuple(centre.tolist()), tuple(held_out.camera_to_worlds[0, :, 2].tolist()), (0.5, 0.5))
-    tracking.select(away, 0.0, backend)
+    tracking.select(away, 0.0)
     assert tracking.selection is None and "hits nothing" in tracking.status.value
-    assert "tracked_mask" not in model.get_outputs_for_camera(viewer_camera(0.0))
+    assert "tracked_mask" not in viewer_render(model, viewer_camera(loaded, 0.0))
 
     # The static sphere selected at time 0 (as a click on it would store it), seen at times 0 and 1.
-    tracking.selection = Selection(
-        point=surface_point(loaded, scene, STATIC_SPHERE, 0, "cam00"), time=0.0, backend=backend
-    )
+    tracking.selection = Selection(point=surface_point(loaded, scene, STATIC_SPHERE, 0, "cam00"), time=0.0)
     for frame in (0, SPEC.frames - 1):
-        camera = viewer_camera(frame / (SPEC.frames - 1))
-        outputs = model.get_outputs_for_camera(camera)
+        camera = viewer_camera(loaded, frame / (SPEC.frames - 1))
+        outputs = viewer_render(model, camera)
         mask = highlighted(outputs)
         truth = ground_truth_view(scene, "cam00", frame, width, height, fov).object_ids == STATIC_SPHERE
         x, y = project_prompt(camera, tracking.selection.point)
@@ -146,6 +167,43 @@ def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained,
         assert (mask & truth).sum() > 0.3 * truth.sum(), f"frame {frame}: the mask misses the object"
         assert mask.sum() < 0.5 * mask.size, f"frame {frame}: the mask covers half the view"
         assert torch.equal(outputs["tracked_mask"][~torch.from_numpy(mask)], outputs["rgb"][~torch.from_numpy(mask)])
+        assert "tracked_mask" not in model.get_outputs_for_camera(camera)  # not a viewer render
+    tracking.selection = None
+
+
+def test_moving_the_time_slider_renders_each_new_time_once(trained, loaded, monkeypatch):
+    """With an object selected, the viewer's SAM features are rendered once per (camera, time): sweeping the
+    slider over the T frames renders T feature maps (without the cache: 1 + 2 + ... + T, every frame between the
+    click and the slider at every step); a moved camera, or a training step, renders again."""
+    import gear_nerfstudio.tracking.viewer as viewer_module
+
+    _, scene, _ = trained
+    tracking = loaded.viewer_tracking
+    rendered = []
+
+    def counting(model, camera, time_, backend):
+        rendered.append(time_)
+        return render_embedding(model, camera, time_, backend)
+
+    monkeypatch.setattr(viewer_module, "render_embedding", counting)
+    tracking.forget()
+    tracking.selection = Selection(point=surface_point(loaded, scene, STATIC_SPHERE, 0, "cam00"), time=0.0)
+    times = [frame / (SPEC.frames - 1) for frame in range(SPEC.frames)]
+    for time_ in times:  # the slider moves forward one frame at a time
+        before = len(rendered)
+        camera = viewer_camera(loaded, time_)
+        tracking.overlay(camera, torch.zeros(int(camera.height), int(camera.width), 3))
+        assert len(rendered) - before == 1, f"time {time_}: {len(rendered) - before} renders"
+    for time_ in reversed(times):  # and back: nothing new to render
+        camera = viewer_camera(loaded, time_)
+        tracking.overlay(camera, torch.zeros(int(camera.height), int(camera.width), 3))
+    assert sorted(rendered) == times
+    moved = viewer_camera(loaded, times[1], x_shift=0.01)
+    tracking.overlay(moved, torch.zeros(int(moved.height), int(moved.width), 3))
+    assert len(rendered) == len(times) + 2  # a new view: the click time and the slider's time
+    tracking.forget()  # a training step
+    tracking.overlay(moved, torch.zeros(int(moved.height), int(moved.width), 3))
+    assert len(rendered) == len(times) + 4
     tracking.selection = None
 
 

@@ -17,8 +17,9 @@ import numpy as np
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from gear_nerfstudio.synthetic.rigs import immersive_rig, n3d_rig, technicolor_rig
-from gear_nerfstudio.synthetic.scene import MotionKind, Render, RigCamera, SyntheticScene
+from gear_nerfstudio.tools.synthetic.rigs import immersive_rig, n3d_rig, technicolor_rig
+from gear_nerfstudio.tools.synthetic.scene import MotionKind, Render, RigCamera, SyntheticScene
+from gear_nerfstudio.tools.video import write_video
 
 DatasetFormat = Literal["technicolor", "n3d", "immersive"]
 
@@ -127,22 +128,6 @@ def _write_immersive(output: Path, scene: SyntheticScene, cameras: Sequence[RigC
             }
         )
     (output / "models.json").write_text(json.dumps(models, indent=2))
-
-
-def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> None:
-    """Encode RGB uint8 frames as H.264 MP4 (near-lossless, yuv444p keeps colours of tiny images)."""
-    import av
-
-    with av.open(str(path), mode="w") as container:
-        stream = container.add_stream("libx264", rate=fps)
-        stream.width, stream.height = frames[0].shape[1], frames[0].shape[0]
-        stream.pix_fmt = "yuv444p"
-        stream.options = {"crf": "4", "preset": "medium"}
-        for rgb in frames:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
 
 
 def _write_scene_json(output: Path, scene: SyntheticScene, cameras: Sequence[RigCamera], spec: SyntheticSpec):

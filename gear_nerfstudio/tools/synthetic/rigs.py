@@ -7,7 +7,7 @@ from typing import List
 
 import numpy as np
 
-from gear_nerfstudio.synthetic.scene import RigCamera, look_at
+from gear_nerfstudio.tools.synthetic.scene import RigCamera, look_at
 
 SCENE_TARGET = np.array([0.0, -0.1, -3.0])
 

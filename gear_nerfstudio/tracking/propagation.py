@@ -1,10 +1,9 @@
-"""Free-viewpoint tracking from user clicks (Gear-NeRF Sec 4.5).
+"""Propagation of free-viewpoint tracking (Gear-NeRF Sec 4.5): masks in a target view at the clicked time and,
+frame by frame, at other times.
 
-Masks for novel viewpoints: the ray through a clicked pixel is traced and its median termination
-depth gives the 3D point where it first meets a surface; the point is projected into a target view,
-whose SAM feature map is rendered from the 4D embedding (Eq 8) and decoded with the projected point
-as the prompt. Masks for novel time steps: the bounding box of the mask at time t prompts the decoder
-on the rendered features at the neighbouring frame t + 1 (or t - 1), frame by frame.
+The target view's SAM feature map is rendered from the 4D embedding (Eq 8) and decoded with the projected click
+(`click.project_prompt`) as the prompt. Masks for novel time steps: the bounding box of the mask at time t
+prompts the decoder on the rendered features at the neighbouring frame t + 1 (or t - 1), frame by frame.
 
 Propagation "embedding" (ours, the default) checks each box result with the 4D embedding: the object's
 feature is the mean rendered SAM feature under the clicked-time mask. When the mask that the box gives at
@@ -13,51 +12,28 @@ it is then looked up in the rendered features at t + 1 (`locate_object`: a point
 to the object's feature than to the rest of the image), and that point prompts as a positive point with
 the box moved onto it. A box alone loses an object that moves further than its own size between frames;
 the paper's box-only propagation remains as "box".
-
-Depth choice: the *median termination depth*. The click ray is sampled densely (CLICK_SAMPLES
-uniform samples between the model's near and far planes) and the field's densities give the
-volume-rendering weights w_i (Eq 1); the depth is the first sample at which the accumulated weight
-sum_{j<=i} w_j reaches half the ray's accumulation A = sum_i w_i, i.e. the median of where the ray
-terminates inside the scene. Unlike the expected depth sum_i w_i t_i / A, it does not average a
-foreground edge with the background behind it, so it lies on the first surface the ray meets. A ray
-whose accumulation A stays below `min_accumulation` (default 0.5: it more likely ends nowhere than on
-a surface; "empty sky", or a ray leaving the scene box) hits nothing and raises `TrackingError`.
-
-Every failure a user can cause (time outside [0, 1], a pixel outside the image, a click on nothing, a
-point behind or outside a target view) raises `TrackingError` with a message that says which.
 """
 
 from __future__ import annotations
 
 import contextlib
-import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 from scipy import ndimage
-from nerfstudio.cameras.cameras import Cameras, CameraType
-from nerfstudio.model_components.ray_samplers import UniformSampler
+from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
-from gear_nerfstudio.projection import project
 from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, valid_grid
+from gear_nerfstudio.tracking.click import TrackingError, check_time, image_size, single_camera
 
 if TYPE_CHECKING:
     from nerfstudio.models.base_model import Model
 
-HIT_ACCUMULATION = 0.5
-"""Default accumulated weight a click ray needs to count as meeting a surface."""
-CLICK_SAMPLES = 256
-"""Uniform samples along a click ray for its median termination depth."""
-PROJECTABLE = (CameraType.PERSPECTIVE.value, CameraType.FISHEYE.value)
 Propagation = Literal["embedding", "box"]
 """How a mask at t prompts t +- 1: its box, re-found by the object's embedding when lost (ours), or its box."""
-
-
-class TrackingError(ValueError):
-    """A click, camera or time that tracking cannot use; the message says which and why."""
 
 
 @dataclass
@@ -67,38 +43,6 @@ class TrackedMask:
     time: float
     mask: np.ndarray  # (H, W) bool
     prompt: Dict = field(default_factory=dict)  # {"points", "labels"} (click), {"box", "from_time"} (+ points, labels)
-
-
-def check_time(time: float, what: str = "time") -> float:
-    """Times are in [0, 1] (frame index / (T - 1)); anything else is a TrackingError."""
-    if not isinstance(time, (int, float)) or not math.isfinite(time) or not 0.0 <= time <= 1.0:
-        raise TrackingError(f"{what} {time} is outside [0, 1] (times are frame index / (frames - 1))")
-    return float(time)
-
-
-def single_camera(camera: Cameras, time: Optional[float] = None) -> Cameras:
-    """A flat Cameras of one camera, with `time` as its time when given."""
-    if camera.size != 1:
-        raise TrackingError(f"expected a single camera, got a Cameras of shape {tuple(camera.shape)}")
-    flat = camera.flatten()
-    times = flat.times if time is None else torch.full((1, 1), float(time), device=flat.device)
-    return Cameras(
-        camera_to_worlds=flat.camera_to_worlds,
-        fx=flat.fx,
-        fy=flat.fy,
-        cx=flat.cx,
-        cy=flat.cy,
-        width=flat.width,
-        height=flat.height,
-        distortion_params=flat.distortion_params,
-        camera_type=flat.camera_type,
-        times=times,
-    )
-
-
-def image_size(camera: Cameras) -> Tuple[int, int]:
-    """(H, W) of a single camera."""
-    return int(camera.height.reshape(-1)[0]), int(camera.width.reshape(-1)[0])
 
 
 @contextlib.contextmanager
@@ -118,71 +62,6 @@ def _render(model: "Model", camera: Cameras, time: float, pixels: Tensor) -> Dic
     rays = camera.generate_rays(camera_indices=0, coords=pixels[..., [1, 0]].to(model.device))
     with _evaluating(model):
         return model.get_outputs_for_camera_ray_bundle(rays)
-
-
-def click_point(
-    model: "Model",
-    camera: Cameras,
-    pixel: Tuple[float, float],
-    time: float,
-    min_accumulation: float = HIT_ACCUMULATION,
-) -> Tensor:
-    """The 3D world point (3,) where the ray through `pixel` = (x, y) first meets a surface at `time`.
-
-    Sec 4.5: trace the ray and take its median termination depth (see the module docstring). Raises
-    TrackingError for a time outside [0, 1], a pixel outside the image, or a ray whose accumulation
-    stays below `min_accumulation` (it hits nothing).
-    """
-    time = check_time(time, "click time")
-    height, width = image_size(camera)
-    x, y = float(pixel[0]), float(pixel[1])
-    if not (math.isfinite(x) and math.isfinite(y) and 0.0 <= x < width and 0.0 <= y < height):
-        raise TrackingError(f"click pixel (x={x:g}, y={y:g}) is outside the {width}x{height} image")
-    camera = single_camera(camera, time).to(model.device)
-    rays = model.collider(camera.generate_rays(camera_indices=0, coords=torch.tensor([[y, x]], device=model.device)))
-    samples = UniformSampler(num_samples=CLICK_SAMPLES, train_stratified=False)(rays)
-    positions = samples.frustums.get_positions()
-    with torch.no_grad():
-        density = model.field(
-            positions.reshape(-1, 3), samples.frustums.directions.reshape(-1, 3), samples.times.reshape(-1, 1)
-        )["density"]
-        weights = samples.get_weights(density.reshape(*positions.shape[:-1], 1))[0, :, 0]
-    accumulation = float(weights.sum())
-    if accumulation < min_accumulation:
-        raise TrackingError(
-            f"the click at pixel (x={x:g}, y={y:g}), time {time:g} hits nothing: the ray's accumulated "
-            f"density is {accumulation:.3f} < {min_accumulation:g} (empty sky or outside the scene)"
-        )
-    median = int(torch.searchsorted(torch.cumsum(weights, 0), torch.tensor([accumulation / 2], device=weights.device)))
-    depth = (samples.frustums.starts[0, median] + samples.frustums.ends[0, median]) / 2
-    return (rays.origins[0] + rays.directions[0] * depth).detach().cpu().float()
-
-
-def project_prompt(camera: Cameras, point: Tensor) -> Tuple[float, float]:
-    """Pixel (x, y) of a world point in a single pinhole or fisheye camera.
-
-    Raises TrackingError when the camera cannot be projected into (equirectangular and the like), the
-    point is behind it, or it falls outside the image.
-    """
-    camera = single_camera(camera)
-    if int(camera.camera_type.reshape(-1)[0]) not in PROJECTABLE:
-        raise TrackingError(
-            f"cannot project into a {CameraType(int(camera.camera_type.reshape(-1)[0])).name.lower()} camera; "
-            "tracking supports perspective and fisheye targets"
-        )
-    point = torch.as_tensor(point, dtype=torch.float32).reshape(1, 3)
-    uv, in_front = project(camera.to("cpu"), point)
-    coordinates = ", ".join(f"{v:.3f}" for v in point[0].tolist())
-    if not bool(in_front[0, 0]):
-        raise TrackingError(f"the clicked point ({coordinates}) is behind the camera")
-    x, y = (float(v) for v in uv[0, 0])
-    height, width = image_size(camera)
-    if not (math.isfinite(x) and math.isfinite(y) and 0.0 <= x < width and 0.0 <= y < height):
-        raise TrackingError(
-            f"the clicked point ({coordinates}) projects to pixel (x={x:.1f}, y={y:.1f}), outside the "
-            f"{width}x{height} image"
-        )
-    return x, y
 
 
 def render_embedding(model: "Model", camera: Cameras, time: float, backend: SamBackend) -> Embedding:

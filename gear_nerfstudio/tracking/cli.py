@@ -29,21 +29,12 @@ import numpy as np
 import tyro
 from PIL import Image
 
-from gear_nerfstudio import track_metrics
-from gear_nerfstudio.frame_cache import DatasetError
-from gear_nerfstudio.synthetic.writers import write_video
-from gear_nerfstudio.tracking import (
-    HIT_ACCUMULATION,
-    TrackingError,
-    check_time,
-    click_point,
-    frame_times,
-    image_size,
-    Propagation,
-    project_prompt,
-    render_rgb,
-    track_view,
-)
+from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.tools.synthetic.ground_truth import GroundTruth
+from gear_nerfstudio.tools.video import write_video
+from gear_nerfstudio.tracking.metrics import score, summarise
+from gear_nerfstudio.tracking.click import HIT_ACCUMULATION, TrackingError, check_time, click_point, image_size, project_prompt
+from gear_nerfstudio.tracking.propagation import Propagation, frame_times, render_rgb, track_view
 
 
 @dataclass
@@ -152,45 +143,6 @@ def dataset_cameras(pipeline) -> Tuple[Dict[str, Any], List[str]]:
     return cameras, held_out
 
 
-class GroundTruth:
-    """Object masks of a synthetic scene: `<data>/ground_truth/<camera>.npz` (object_ids (T, H, W))."""
-
-    def __init__(self, folder: Path, frame_numbers: List[int], first_frame_number: int):
-        self.folder = folder
-        self.frame_numbers = frame_numbers
-        self.first_frame_number = first_frame_number
-        self._ids: Dict[str, np.ndarray] = {}
-
-    @classmethod
-    def find(cls, config, metadata: Dict) -> Optional["GroundTruth"]:
-        data = getattr(config.pipeline.datamanager.dataparser, "data", None)
-        if data is None or not (Path(data) / "ground_truth" / "scene.json").is_file():
-            return None
-        folder = Path(data) / "ground_truth"
-        spec = json.loads((folder / "scene.json").read_text()).get("spec", {})
-        return cls(folder, list(metadata.get("frame_numbers", [])), int(spec.get("first_frame_number", 0)))
-
-    def object_ids(self, camera: str, time: float, size: Tuple[int, int]) -> Optional[np.ndarray]:
-        """Object ids (H, W) of a camera at a frame time, resampled to `size`; None off the frames."""
-        count = len(self.frame_numbers)
-        index = round(time * max(count - 1, 1))
-        if count == 0 or abs(index / max(count - 1, 1) - time) > 1e-6:
-            return None
-        if camera not in self._ids:
-            path = self.folder / f"{camera}.npz"
-            if not path.is_file():
-                return None
-            with np.load(path) as data:
-                self._ids[camera] = data["object_ids"]
-        ids = self._ids[camera]
-        frame = self.frame_numbers[index] - self.first_frame_number
-        if not 0 <= frame < len(ids):
-            return None
-        rows = ((np.arange(size[0]) + 0.5) * ids.shape[1] / size[0]).astype(np.int64)
-        cols = ((np.arange(size[1]) + 0.5) * ids.shape[2] / size[1]).astype(np.int64)
-        return ids[frame][rows[:, None], cols[None, :]]
-
-
 @dataclass
 class Plan:
     """Everything checked before writing: the clicks' 3D points and each target view's prompts."""
@@ -268,7 +220,7 @@ class Plan:
         num_frames = int(getattr(model, "num_frames", 1))
         times = sorted({*(command.times if command.times is not None else frame_times(num_frames))})
         metadata = pipeline.datamanager.train_dataset.metadata
-        ground_truth = GroundTruth.find(config, metadata)
+        ground_truth = GroundTruth.find(getattr(config.pipeline.datamanager.dataparser, "data", None), metadata)
         target_object = None
         if ground_truth is not None and command.click_camera is not None:
             ids = ground_truth.object_ids(click_name, click_time, image_size(click_camera))
@@ -300,7 +252,7 @@ class Plan:
 
     def _write_into(self, folder: Path, command: TrackCommand, header: Dict[str, Any]) -> Dict[str, Any]:
         model = self.pipeline.model
-        backend = self.pipeline.datamanager.sam_backend
+        backend = self.pipeline.sam_backend
         num_frames = int(getattr(model, "num_frames", 1))
         records, scores = [], []
         for name, camera in self.views.items():
@@ -324,7 +276,7 @@ class Plan:
                 record["prompt"] = item.prompt
                 truth = self._truth(name, item.time, image_size(camera))
                 if truth is not None:
-                    result = track_metrics.score(name, item.time, item.time == self.click_time, item.mask, truth)
+                    result = score(name, item.time, item.time == self.click_time, item.mask, truth)
                     scores.append(result)
                     record.update(iou=result.iou, accuracy=result.accuracy)
                 records.append(record)
@@ -351,7 +303,7 @@ class Plan:
             "times": self.times,
             "masks": records,
             "ground_truth_object": self.target_object,
-            "metrics": track_metrics.summarise(scores) if scores else None,
+            "metrics": summarise(scores) if scores else None,
         }
         if not scores:
             summary["metrics_note"] = (

@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Optional, Tuple, Type
+from typing import Any, Callable, Dict, List, Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -24,6 +24,7 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.cameras.rays import RayBundle, RaySamples
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.model_components.losses import MSELoss, distortion_loss, interlevel_loss
 from nerfstudio.model_components.ray_samplers import (
@@ -37,10 +38,10 @@ from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from gear_nerfstudio.gear_field import GearField, ProposalDensityField
-from gear_nerfstudio.gear_updates import GearUpdateConfig, GearUpdater, GearUpdateState
-from gear_nerfstudio.split_sampler import SplitSampler
-from gear_nerfstudio.viewer_tracking import ViewerTracking
+from gear_nerfstudio.fields.gear_field import GearField, GearFieldHeadNames, sample_points
+from gear_nerfstudio.fields.proposal_field import ProposalDensityField
+from gear_nerfstudio.model.renderers import GearLevelRenderer, SamRenderer
+from gear_nerfstudio.model.split_sampler import SplitSampler
 
 
 @dataclass
@@ -128,8 +129,6 @@ class GearNeRFModelConfig(ModelConfig):
     """Proposal (interlevel) loss, proposal base sampler only."""
     distortion_loss_mult: float = 1e-3
     """Distortion loss on the base samples, proposal base sampler only."""
-    gear_updates: GearUpdateConfig = field(default_factory=GearUpdateConfig)
-    """Gear-assignment updates during training (Sec 4.3)."""
 
 
 MIN_MSE = 1e-10
@@ -215,7 +214,6 @@ class GearNeRFModel(Model):
         else:
             self.base_sampler = UniformSampler(num_samples=config.num_samples)
         self.split_sampler = SplitSampler(split_base=config.split_base)
-        self.gear_update_state = GearUpdateState()
 
         near = metadata.get("near") if config.near_plane is None else config.near_plane
         far = metadata.get("far") if config.far_plane is None else config.far_plane
@@ -228,9 +226,12 @@ class GearNeRFModel(Model):
         self.renderer_rgb = RGBRenderer(background_color=config.background_color)
         self.renderer_accumulation = AccumulationRenderer()
         self.renderer_depth = DepthRenderer(method="median")
+        self.renderer_sam = SamRenderer()
+        self.renderer_gear_level = GearLevelRenderer()
         self.rgb_loss = MSELoss()
         self._lpips: Dict[str, Any] = {}
-        self.tracking = ViewerTracking(self)
+        self.render_hooks: List[Callable[[Cameras, Dict[str, Tensor]], Dict[str, Tensor]]] = []
+        """Extra outputs of full-image renders (``get_outputs_for_camera``), such as the viewer's tracked mask."""
 
     def gear_values(
         self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*bs 1"]]
@@ -257,26 +258,8 @@ class GearNeRFModel(Model):
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
-        """Gear-assignment updates (Sec 4.3); proposal weight annealing and update schedule if used."""
-        callbacks = []
-        attributes = training_callback_attributes
-        updates = self.config.gear_updates.enabled and self.config.num_gears > 1
-        if updates and attributes.pipeline is not None and attributes.trainer is not None:
-            trainer = attributes.trainer
-            first_step = getattr(trainer, "_start_step", 0)
-            updater = GearUpdater(
-                self.config.gear_updates,
-                self,
-                attributes.pipeline.datamanager,
-                attributes.optimizers.optimizers["gear_field"],
-                self.gear_update_state,
-                first_step=first_step,
-                last_step=first_step + trainer.config.max_num_iterations - 1,
-                seed=trainer.config.machine.seed,
-            )
-            callbacks.append(
-                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], updater, update_every_num_iters=1)
-            )
+        """Proposal weight annealing and update schedule, when the proposal sampler is used."""
+        callbacks: List[TrainingCallback] = []
         if not isinstance(self.base_sampler, ProposalNetworkSampler) or not self.config.use_proposal_weight_anneal:
             return callbacks
         sampler = self.base_sampler
@@ -306,23 +289,19 @@ class GearNeRFModel(Model):
         base_samples, weights_list, ray_samples_list = self.sample_base(ray_bundle)
         split = self.split_sampler(base_samples, self.field.gear_levels)
         samples = split.ray_samples
-        field_outputs = self.field(
+        packed = sample_points(
             split.pack(samples.frustums.get_positions()),
-            split.pack(samples.frustums.directions),
             None if samples.times is None else split.pack(samples.times),
+            split.pack(samples.frustums.directions),
         )
-        density = torch.where(split.valid[..., None], split.unpack(field_outputs["density"]), 0.0)
+        field_outputs = self.field(packed)
+        density = torch.where(split.valid[..., None], split.unpack(field_outputs[FieldHeadNames.DENSITY]), 0.0)
         weights = samples.get_weights(density)
 
-        rgb = self.renderer_rgb(rgb=split.unpack(field_outputs["rgb"]), weights=weights)
+        rgb = self.renderer_rgb(rgb=split.unpack(field_outputs[FieldHeadNames.RGB]), weights=weights)
         accumulation = self.renderer_accumulation(weights=weights)
-        sam = self.field.lift_sam(split.accumulate(weights, field_outputs["sam"]), accumulation)
-        levels = field_outputs["gear_level"][:, None].to(weights.dtype)
-        # weighted mean of p; the weights are summed in the same order as p w, so one level gives it exactly
-        level_sum, weight_sum = split.accumulate(weights, torch.cat([levels, torch.ones_like(levels)], -1)).unbind(-1)
-        gear_level = torch.where(
-            weight_sum[:, None] > 1e-6, (level_sum / weight_sum.clamp(min=1e-6))[:, None], 1.0
-        )
+        sam = self.field.lift_sam(self.renderer_sam(split, weights, field_outputs[GearFieldHeadNames.SAM]), accumulation)
+        gear_level = self.renderer_gear_level(split, weights, field_outputs[GearFieldHeadNames.GEAR_LEVEL])
         gear_fraction = ((gear_level - 1.0) / max(self.config.num_gears - 1, 1)).clamp(0.0, 1.0)
         outputs: Dict[str, Any] = {
             "rgb": rgb,
@@ -347,27 +326,56 @@ class GearNeRFModel(Model):
 
     @torch.no_grad()
     def get_outputs_for_camera(self, camera: Cameras, obb_box: Optional[OrientedBox] = None) -> Dict[str, Tensor]:
-        """nerfstudio's full-image render, plus "tracked_mask" once an object was clicked in the viewer
-        (Sec 4.5, see `viewer_tracking`)."""
+        """nerfstudio's full-image render, plus the outputs of the ``render_hooks``."""
         outputs = super().get_outputs_for_camera(camera, obb_box=obb_box)
-        tracked = self.tracking.overlay(camera, outputs["rgb"])
-        if tracked is not None:
-            outputs["tracked_mask"] = tracked
+        for hook in self.render_hooks:
+            outputs.update(hook(camera, outputs))
         return outputs
+
+    @property
+    def num_gears(self) -> int:
+        """N_gear."""
+        return self.field.num_gears
+
+    @torch.no_grad()
+    def render_view(self, camera: Cameras) -> Dict[str, Tensor]:
+        """A full render of one camera in evaluation mode (no sample jitter), restoring the mode afterwards."""
+        was_training = self.training
+        self.eval()
+        try:
+            rays = camera.to(self.device).generate_rays(camera_indices=0, keep_shape=True)
+            return self.get_outputs_for_camera_ray_bundle(rays)
+        finally:
+            self.train(was_training)
+
+    @torch.no_grad()
+    def visible_surface(self, camera: Cameras, outputs: Dict[str, Tensor]) -> Float[Tensor, "H W 3"]:
+        """The world point each pixel of a one-camera render sees: its ray at the median depth."""
+        rays = camera.to(self.device).generate_rays(camera_indices=0, keep_shape=True)
+        return rays.origins + rays.directions * outputs["depth"]
 
     @torch.no_grad()
     def visible_gear_levels(self, camera: Cameras, outputs: Optional[Dict[str, Tensor]] = None) -> Int[Tensor, "H W"]:
-        """Eq 5 at the surface each pixel of a one-camera render sees (its median depth): the gear map.
+        """Eq 5 at the surface each pixel of a one-camera render sees: the gear map.
 
-        ``outputs``: that camera's ``get_outputs_for_camera`` result, rendered here when not given.
+        ``outputs``: that camera's render, made here when not given.
         """
-        camera = camera.to(self.device)
-        if outputs is None:
-            outputs = self.get_outputs_for_camera(camera)
-        rays = camera.generate_rays(camera_indices=0, keep_shape=True)
-        surface = rays.origins + rays.directions * outputs["depth"]
-        times = None if rays.times is None else rays.times.expand(*surface.shape[:-1], 1)
-        return self.field.gear_levels(surface, times)
+        surface = self.visible_surface(camera, self.render_view(camera) if outputs is None else outputs)
+        times = None if camera.times is None else camera.times.to(self.device).reshape(1, 1, 1)
+        return self.field.gear_levels(surface, None if times is None else times.expand(*surface.shape[:-1], 1))
+
+    @torch.no_grad()
+    def sample_weights(
+        self, camera: Cameras, pixels: Float[Tensor, "N 2"]
+    ) -> Tuple[Float[Tensor, "M 3"], Float[Tensor, "M 1"], Float[Tensor, "M"]]:
+        """Base samples (n per ray, stratified uniform) on the rays through pixels (row, col) of one camera:
+        positions, times and volume-rendering weights (Eq 1)."""
+        rays = camera.to(self.device).generate_rays(camera_indices=0, coords=pixels.to(self.device) + 0.5)
+        samples = UniformSampler(num_samples=self.config.num_samples)(self.collider(rays))
+        positions = samples.frustums.get_positions()
+        density = self.field.density_fn(positions, samples.times)
+        weights = samples.get_weights(density)[..., 0]
+        return positions.reshape(-1, 3), samples.times.reshape(-1, 1), weights.reshape(-1)
 
     def get_metrics_dict(self, outputs: Dict[str, Any], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """PSNR of the batch and the mean number of samples per ray."""

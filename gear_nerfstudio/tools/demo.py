@@ -19,7 +19,7 @@ from typing import List, Literal
 import tyro
 
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 
 @dataclasses.dataclass

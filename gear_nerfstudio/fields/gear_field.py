@@ -1,59 +1,49 @@
-"""Serial 4D feature volumes with a gear function (Gear-NeRF, Sec 4.1-4.2, Eq 3-7).
-
-Conventions shared by every planar field in this module:
-
-* Positions are first mapped by the scene box to [-1, 1]^3 (the identity for the dataparsers' box).
-  Unbounded scenes are then contracted with nerfstudio's ``SceneContraction`` (order=inf, into [-2, 2])
-  and halved. In bounded scenes, points outside the box get zero density; their plane features are
-  clamped to the border (``padding_mode="border"``).
-* Times are in [0, 1] and map to [-1, 1] on the temporal axis; with ``align_corners=True`` frame i of T
-  sits exactly on row i of a plane with T rows. A plane with one row is constant in time.
-* The three planes of one resolution are stored as one ``(3, C, H, W)`` tensor: spatial planes h_j over
-  (x, y), (x, z), (y, z) and space-time planes k_j over (z, t), (y, t), (x, t) (W = space, H = time).
-"""
+"""Serial 4D feature volumes with a gear function (Gear-NeRF, Sec 4.1-4.2, Eq 3-7) as a nerfstudio Field."""
 
 from __future__ import annotations
 
 import math
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from enum import Enum
+from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Float, Int
 from torch import Tensor, nn
 
-from nerfstudio.field_components.activations import trunc_exp
+from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.field_components.encodings import SHEncoding
+from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.field_components.mlp import MLP
 from nerfstudio.field_components.spatial_distortions import SpatialDistortion
+from nerfstudio.fields.base_field import Field
 
-SPACE_PLANE_AXES = ((0, 1), (0, 2), (1, 2))
-"""Axes of the spatial planes h_1(x, y), h_2(x, z), h_3(y, z)."""
-TIME_PLANE_AXES = (2, 1, 0)
-"""Spatial axis of the space-time planes k_1(z, t), k_2(y, t), k_3(x, t) paired with h_1, h_2, h_3."""
+from gear_nerfstudio.fields.gear_function import GearFunction, gear_level
+from gear_nerfstudio.fields.planes import (
+    TIME_PLANE_AXES,
+    PlaneTriple,
+    broadcast_times,
+    density_activation,
+    init_space_plane,
+    init_time_plane,
+    normalize_positions,
+    space_coords,
+    time_coords,
+    touched_columns,
+)
+from gear_nerfstudio.fields.regularisers import l1_time_planes, plane_tv, time_smoothness
 
-
-def gear_level(g: Float[Tensor, "*bs"], num_gears: int) -> Int[Tensor, "*bs"]:
-    """Eq 5: p = 1 if g < 1, N_gear if g >= N_gear, ceil(g) otherwise.
-
-    -inf maps to 1, +inf to N_gear; NaN maps to 1 (the lowest gear, i.e. no extra sampling).
-    """
-    return torch.ceil(torch.nan_to_num(g, nan=1.0).clamp(1.0, float(num_gears))).long()
-
-
-MAX_LOG_DENSITY = 80.0
-"""Cap on log sigma: exp(80) ~ 5.5e34 is finite in float32 and bfloat16 (exp overflows past 88.7)."""
-
-
-def density_activation(raw: Tensor) -> Tensor:
-    """sigma = exp(raw - 1) (K-Planes' ``trunc_exp``) with log sigma capped at ``MAX_LOG_DENSITY``.
-
-    Eq 1 uses sigma only through alpha = 1 - exp(-sigma delta). An infinite sigma gives sigma delta = NaN on a
-    zero-length segment (delta = 0: near = far, a split of such a segment), and that NaN reaches the
-    transmittance of every later sample of the ray and the gradients. At the cap, any segment longer than
-    1e-33 is already opaque (alpha = 1 in float32), so no rendered value changes.
-    """
-    return trunc_exp((raw - 1.0).clamp(max=MAX_LOG_DENSITY))
+def sample_points(
+    positions: Float[Tensor, "*bs 3"],
+    times: Optional[Float[Tensor, "*bs 1"]] = None,
+    directions: Optional[Float[Tensor, "*bs 3"]] = None,
+) -> RaySamples:
+    """Points (with times and viewing directions) as zero-length ray samples, the form a nerfstudio Field
+    evaluates."""
+    zeros = torch.zeros_like(positions[..., :1])
+    directions = torch.ones_like(positions) if directions is None else directions
+    frustums = Frustums(origins=positions, directions=directions, starts=zeros, ends=zeros, pixel_area=zeros + 1)
+    return RaySamples(frustums=frustums, times=times)
 
 
 def temporal_resolutions(num_gears: int, num_frames: int) -> List[int]:
@@ -71,159 +61,19 @@ def temporal_resolutions(num_gears: int, num_frames: int) -> List[int]:
     ]
 
 
-def normalize_positions(
-    positions: Float[Tensor, "*bs 3"], aabb: Float[Tensor, "2 3"], spatial_distortion: Optional[SpatialDistortion]
-) -> Tuple[Float[Tensor, "*bs 3"], Bool[Tensor, "*bs"]]:
-    """Plane coordinates in [-1, 1]^3 and whether each point lies inside the represented volume."""
-    x = (positions - aabb[0]) / (aabb[1] - aabb[0]) * 2.0 - 1.0
-    if spatial_distortion is not None:
-        x = spatial_distortion(x) / 2.0
-        return x, torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device)
-    return x, (x.abs() <= 1.0).all(dim=-1)
+class GearFieldHeadNames(Enum):
+    """Outputs of the gear field beside nerfstudio's density and rgb."""
+
+    SAM = "sam"
+    """SAM embedding of each sample before the lift (Sec 4.2)."""
+    GEAR_LEVEL = "gear_level"
+    """Gear level p of each sample (Eq 5)."""
 
 
-def broadcast_times(times: Optional[Tensor], shape: torch.Size, like: Tensor) -> Float[Tensor, "*bs 1"]:
-    """Times of shape ``(*shape, 1)``: zeros when absent, per-ray times expanded over samples."""
-    if times is None:
-        return like.new_zeros((*shape, 1))
-    while times.dim() < len(shape) + 1:
-        times = times.unsqueeze(-2)
-    return times.expand(*shape, 1)
+FieldOutputs = Dict[Union[FieldHeadNames, GearFieldHeadNames], Tensor]
 
 
-def space_coords(x: Float[Tensor, "N 3"]) -> Float[Tensor, "3 N 2"]:
-    """Coordinates of each sample on the spatial planes (x, y), (x, z), (y, z)."""
-    return torch.stack([x[:, list(axes)] for axes in SPACE_PLANE_AXES])
-
-
-def time_coords(x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "3 N 2"]:
-    """Coordinates of each sample on the space-time planes (z, t), (y, t), (x, t)."""
-    t = t * 2.0 - 1.0
-    return torch.stack([torch.cat([x[:, axis : axis + 1], t], dim=-1) for axis in TIME_PLANE_AXES])
-
-
-def touched_columns(u: Float[Tensor, "N"], resolution: int) -> Bool[Tensor, "resolution"]:
-    """Cells along one spatial axis of a plane of ``resolution`` cells (``align_corners=True``, border-clamped)
-    that bilinear sampling at coordinates u in [-1, 1] reads."""
-    position = (u.clamp(-1.0, 1.0) + 1.0) * 0.5 * (resolution - 1)
-    low = position.floor().long().clamp(0, resolution - 1)
-    touched = torch.zeros(resolution, dtype=torch.bool, device=u.device)
-    touched[low] = True
-    touched[(low + 1).clamp(max=resolution - 1)] = True
-    return touched
-
-
-class PlaneTriple(nn.Module):
-    """Three feature planes at one or more resolutions, sampled bilinearly.
-
-    Args:
-        num_channels: feature channels C of every plane.
-        shapes: (H, W) of the planes at each resolution.
-        init: in-place initialiser applied to each ``(3, C, H, W)`` parameter.
-    """
-
-    def __init__(self, num_channels: int, shapes: Sequence[Tuple[int, int]], init: Callable[[Tensor], None]) -> None:
-        super().__init__()
-        self.planes = nn.ParameterList()
-        for height, width in shapes:
-            plane = torch.empty(3, num_channels, height, width)
-            init(plane)
-            self.planes.append(nn.Parameter(plane))
-
-    def forward(self, coords: Float[Tensor, "3 N 2"]) -> Float[Tensor, "3 N out"]:
-        """Features of the three planes, resolutions concatenated (out = C * num_resolutions)."""
-        grid = coords[:, :, None, :]
-        features = [
-            F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True)[..., 0]
-            for plane in self.planes
-        ]
-        return torch.cat(features, dim=1).transpose(1, 2)
-
-
-def init_space_plane(plane: Tensor) -> None:
-    """Spatial planes start uniform in (0.1, 0.5), as in K-Planes."""
-    nn.init.uniform_(plane, 0.1, 0.5)
-
-
-def init_time_plane(plane: Tensor) -> None:
-    """Space-time planes start at 1, the identity of the Hadamard product, as in K-Planes."""
-    nn.init.ones_(plane)
-
-
-def init_gear_space_plane(plane: Tensor) -> None:
-    """h' for Eq 4: first half of the channels uniform in (0.1, 0.5), second half zero."""
-    half = plane.shape[1] // 2
-    nn.init.uniform_(plane[:, :half], 0.1, 0.5)
-    nn.init.zeros_(plane[:, half:])
-
-
-def init_gear_time_plane(plane: Tensor) -> None:
-    """k' for Eq 4: first half of the channels zero, second half uniform in (0.1, 0.5)."""
-    half = plane.shape[1] // 2
-    nn.init.zeros_(plane[:, :half])
-    nn.init.uniform_(plane[:, half:], 0.1, 0.5)
-
-
-def per_plane_sum(terms: List[Tensor], triples_per_field: int, like: Tensor) -> Tensor:
-    """Sum of per-triple terms (each the mean over its three planes) divided by the triples of one K-Planes
-    field: K-Planes' normalisation per plane, so every plane weighs the same whatever other planes exist."""
-    total = torch.stack(terms).sum() if terms else like.new_zeros(())
-    return total / triples_per_field
-
-
-def plane_tv(space_triples: Sequence[Tensor], time_triples: Sequence[Tensor], triples_per_field: int) -> Tensor:
-    """K-Planes total variation: mean squared difference of neighbouring cells along both axes of each spatial
-    plane and along the spatial axis (W) of each space-time plane, normalised per plane (``per_plane_sum``)."""
-    terms = [
-        (t[..., 1:, :] - t[..., :-1, :]).square().mean() + (t[..., :, 1:] - t[..., :, :-1]).square().mean()
-        for t in space_triples
-    ]
-    terms += [(t[..., :, 1:] - t[..., :, :-1]).square().mean() for t in time_triples]
-    return per_plane_sum(terms, triples_per_field, space_triples[0])
-
-
-def l1_time_planes(time_triples: Sequence[Tensor], triples_per_field: int, like: Tensor) -> Tensor:
-    """K-Planes L1 penalty: mean |1 - k| of each space-time plane (1 is static), normalised per plane."""
-    return per_plane_sum([(1.0 - t).abs().mean() for t in time_triples], triples_per_field, like)
-
-
-def time_smoothness(time_triples: Sequence[Tensor], triples_per_field: int, like: Tensor) -> Tensor:
-    """K-Planes time smoothness: mean squared second difference along t of each space-time plane (planes with
-    fewer than 3 rows have none), normalised per plane."""
-    terms = [
-        (t[..., 2:, :] - 2.0 * t[..., 1:-1, :] + t[..., :-2, :]).square().mean() for t in time_triples if t.shape[-2] >= 3
-    ]
-    return per_plane_sum(terms, triples_per_field, like)
-
-
-class GearFunction(nn.Module):
-    """Eq 4: the continuous gear value g(x, t) from its own planes h'_j, k'_j.
-
-    g = 1 + sum_j 1^T (h'_j(.) ⊙ k'_j(.)). The offset 1 realises the paper's initialisation g = 1
-    (Sec 4.3) exactly: h' and k' are initialised on complementary channels (h' is zero where k' is not
-    and vice versa), so every product is exactly 0 at the start while dg/dk' = h' and dg/dh' = k' are
-    non-zero, i.e. the first gear update already moves both h' and k'.
-
-    Args:
-        feature_dim: channels M' of h' and k' (even).
-        resolution: spatial resolution of the planes.
-        time_resolution: temporal resolution of k'.
-    """
-
-    def __init__(self, feature_dim: int = 8, resolution: int = 64, time_resolution: int = 1) -> None:
-        super().__init__()
-        if feature_dim < 2 or feature_dim % 2:
-            raise ValueError(f"gear_feature_dim must be even and >= 2, got {feature_dim}")
-        self.space_planes = PlaneTriple(feature_dim, [(resolution, resolution)], init_gear_space_plane)
-        self.time_planes = PlaneTriple(feature_dim, [(time_resolution, resolution)], init_gear_time_plane)
-
-    def forward(self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N"]:
-        """g at normalised positions x in [-1, 1]^3 and times t in [0, 1]."""
-        products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
-        return 1.0 + products.sum(dim=(0, 2))
-
-
-class GearField(nn.Module):
+class GearField(Field):
     """Serial 4D feature volumes (Eq 3-7) and the tiny MLP F_theta (density, colour, SAM embedding).
 
     Spatial planes h_j (multi-resolution, shared by all gears), per-gear space-time planes k_j^G and a
@@ -278,6 +128,7 @@ class GearField(nn.Module):
         self.register_buffer("aabb", aabb.clone().float())
         self.num_gears = num_gears
         self.feature_dim = feature_dim
+        self.geo_feat_dim = geo_feat_dim
         self.spatial_distortion = spatial_distortion
         if time_resolutions is None:
             self.time_resolutions = temporal_resolutions(num_gears, num_frames)
@@ -365,28 +216,37 @@ class GearField(nn.Module):
         sorted_features = torch.cat(chunks)
         return torch.zeros_like(sorted_features).index_copy(0, order, sorted_features)
 
-    def forward(
-        self,
-        positions: Float[Tensor, "N 3"],
-        directions: Float[Tensor, "N 3"],
-        times: Optional[Float[Tensor, "N 1"]] = None,
-    ) -> Dict[str, Tensor]:
-        """Evaluate flat (packed) samples.
-
-        Returns:
-            ``density`` (N, 1), ``rgb`` (N, 3), ``sam`` (N, sam_head_dim or sam_dim) and ``gear_level`` (N,).
-        """
-        x, inside = normalize_positions(positions, self.aabb, self.spatial_distortion)
-        t = broadcast_times(times, positions.shape[:-1], positions)
+    def get_density(self, ray_samples: RaySamples) -> Tuple[Float[Tensor, "*bs 1"], Float[Tensor, "*bs E"]]:
+        """Density at the samples' positions and times, and what ``get_outputs`` needs of them: the density MLP's
+        geometry features, the feature f (Eq 7) and the gear level p (Eq 5), concatenated."""
+        positions = ray_samples.frustums.get_positions()
+        shape = positions.shape[:-1]
+        x, inside = normalize_positions(positions.reshape(-1, 3), self.aabb, self.spatial_distortion)
+        t = broadcast_times(ray_samples.times, shape, positions).reshape(-1, 1)
         with torch.no_grad():
             levels = gear_level(self.gear_function(x, t), self.num_gears)
         features = self.gear_features(x, t, levels)
-
         hidden = self.density_net(features)
         density = torch.where(inside[:, None], density_activation(hidden[:, :1]), torch.zeros_like(hidden[:, :1]))
-        encoded_directions = self.direction_encoding(F.normalize(directions, dim=-1))
-        rgb = self.color_net(torch.cat([encoded_directions, hidden[:, 1:]], dim=-1))
-        return {"density": density, "rgb": rgb, "sam": self.sam_net(features), "gear_level": levels}
+        embedding = torch.cat([hidden[:, 1:], features, levels[:, None].to(features.dtype)], dim=-1)
+        return density.reshape(*shape, 1), embedding.reshape(*shape, -1)
+
+    def get_outputs(self, ray_samples: RaySamples, density_embedding: Optional[Tensor] = None) -> FieldOutputs:
+        """Colour (view-dependent, spherical harmonics), SAM embedding (Sec 4.2) and gear level of each sample."""
+        assert density_embedding is not None, "the gear field's outputs need get_density's embedding"
+        geometry, features, levels = density_embedding.split([self.geo_feat_dim, self.feature_dim, 1], dim=-1)
+        directions = self.direction_encoding(F.normalize(ray_samples.frustums.directions, dim=-1))
+        return {
+            FieldHeadNames.RGB: self.color_net(torch.cat([directions, geometry], dim=-1)),
+            GearFieldHeadNames.SAM: self.sam_net(features),
+            GearFieldHeadNames.GEAR_LEVEL: levels[..., 0].round().long(),
+        }
+
+    def density_fn(
+        self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*bs 1"]] = None
+    ) -> Float[Tensor, "*bs 1"]:
+        """Density at world positions and times (nerfstudio's density_fn, with times)."""
+        return self.get_density(sample_points(positions, times))[0]
 
     def lift_sam(
         self, rendered: Float[Tensor, "*bs C"], accumulation: Float[Tensor, "*bs 1"]
@@ -462,52 +322,4 @@ class GearField(nn.Module):
             "plane_tv": plane_tv(space, time, 2 * count),
             "l1_time_planes": l1_time_planes(time, count, space[0]),
             "time_smoothness": time_smoothness(time, count, space[0]),
-        }
-
-
-class ProposalDensityField(nn.Module):
-    """Density-only planar field for the optional proposal sampler (one gear, one resolution).
-
-    Args:
-        aabb: scene box.
-        resolution: spatial resolution of the planes.
-        time_resolution: temporal resolution of the space-time planes.
-        feature_dim: plane channels.
-        spatial_distortion: contraction for unbounded scenes.
-    """
-
-    def __init__(
-        self,
-        aabb: Float[Tensor, "2 3"],
-        resolution: int,
-        time_resolution: int,
-        feature_dim: int = 8,
-        spatial_distortion: Optional[SpatialDistortion] = None,
-    ) -> None:
-        super().__init__()
-        self.register_buffer("aabb", aabb.clone().float())
-        self.spatial_distortion = spatial_distortion
-        self.space_planes = PlaneTriple(feature_dim, [(resolution, resolution)], init_space_plane)
-        self.time_planes = PlaneTriple(feature_dim, [(max(1, time_resolution), resolution)], init_time_plane)
-        self.decoder = nn.Linear(3 * feature_dim, 1)
-
-    def density_fn(
-        self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*rays 1"]] = None
-    ) -> Float[Tensor, "*bs 1"]:
-        """Density at world positions; per-ray ``times`` broadcast over the samples of each ray."""
-        shape = positions.shape[:-1]
-        x, inside = normalize_positions(positions.reshape(-1, 3), self.aabb, self.spatial_distortion)
-        t = broadcast_times(times, shape, positions).reshape(-1, 1)
-        products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
-        raw = self.decoder(products.transpose(0, 1).reshape(x.shape[0], -1))
-        density = torch.where(inside[:, None], density_activation(raw), torch.zeros_like(raw))
-        return density.reshape(*shape, 1)
-
-    def regularisers(self) -> Dict[str, Tensor]:
-        """K-Planes regularisers on the proposal planes."""
-        space, time = list(self.space_planes.planes), list(self.time_planes.planes)
-        return {
-            "plane_tv": plane_tv(space, time, 2),
-            "l1_time_planes": l1_time_planes(time, 1, space[0]),
-            "time_smoothness": time_smoothness(time, 1, space[0]),
         }

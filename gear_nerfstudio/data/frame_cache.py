@@ -18,9 +18,7 @@ import numpy as np
 from PIL import Image
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-
-class DatasetError(ValueError):
-    """Bad input data; the message names the file and what is wrong with it."""
+from gear_nerfstudio.data.errors import DatasetError
 
 
 def default_cache_dir() -> Path:

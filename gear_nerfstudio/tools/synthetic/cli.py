@@ -8,8 +8,8 @@ from typing import Literal
 
 import tyro
 
-from gear_nerfstudio.synthetic.scene import MotionKind
-from gear_nerfstudio.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.tools.synthetic.scene import MotionKind
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 
 @dataclasses.dataclass

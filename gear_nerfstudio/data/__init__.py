@@ -1,0 +1,1 @@
+"""Data: the datamanager with SAM features, the on-disk frame cache, dataset errors."""

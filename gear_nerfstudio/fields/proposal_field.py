@@ -1,0 +1,70 @@
+"""Density-only planar field for the optional proposal sampler (K-Planes)."""
+
+from __future__ import annotations
+
+from typing import Dict, Optional
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from nerfstudio.field_components.spatial_distortions import SpatialDistortion
+
+from gear_nerfstudio.fields.planes import (
+    PlaneTriple,
+    broadcast_times,
+    density_activation,
+    init_space_plane,
+    init_time_plane,
+    normalize_positions,
+    space_coords,
+    time_coords,
+)
+from gear_nerfstudio.fields.regularisers import l1_time_planes, plane_tv, time_smoothness
+
+class ProposalDensityField(nn.Module):
+    """Density-only planar field for the optional proposal sampler (one gear, one resolution).
+
+    Args:
+        aabb: scene box.
+        resolution: spatial resolution of the planes.
+        time_resolution: temporal resolution of the space-time planes.
+        feature_dim: plane channels.
+        spatial_distortion: contraction for unbounded scenes.
+    """
+
+    def __init__(
+        self,
+        aabb: Float[Tensor, "2 3"],
+        resolution: int,
+        time_resolution: int,
+        feature_dim: int = 8,
+        spatial_distortion: Optional[SpatialDistortion] = None,
+    ) -> None:
+        super().__init__()
+        self.register_buffer("aabb", aabb.clone().float())
+        self.spatial_distortion = spatial_distortion
+        self.space_planes = PlaneTriple(feature_dim, [(resolution, resolution)], init_space_plane)
+        self.time_planes = PlaneTriple(feature_dim, [(max(1, time_resolution), resolution)], init_time_plane)
+        self.decoder = nn.Linear(3 * feature_dim, 1)
+
+    def density_fn(
+        self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*rays 1"]] = None
+    ) -> Float[Tensor, "*bs 1"]:
+        """Density at world positions; per-ray ``times`` broadcast over the samples of each ray."""
+        shape = positions.shape[:-1]
+        x, inside = normalize_positions(positions.reshape(-1, 3), self.aabb, self.spatial_distortion)
+        t = broadcast_times(times, shape, positions).reshape(-1, 1)
+        products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
+        raw = self.decoder(products.transpose(0, 1).reshape(x.shape[0], -1))
+        density = torch.where(inside[:, None], density_activation(raw), torch.zeros_like(raw))
+        return density.reshape(*shape, 1)
+
+    def regularisers(self) -> Dict[str, Tensor]:
+        """K-Planes regularisers on the proposal planes."""
+        space, time = list(self.space_planes.planes), list(self.time_planes.planes)
+        return {
+            "plane_tv": plane_tv(space, time, 2),
+            "l1_time_planes": l1_time_planes(time, 1, space[0]),
+            "time_smoothness": time_smoothness(time, 1, space[0]),
+        }

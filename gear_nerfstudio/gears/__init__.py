@@ -1,0 +1,1 @@
+"""Gear-assignment updates (Sec 4.3): schedule, loss maps and prompts, upshift targets and steps, the updater."""

@@ -1,0 +1,58 @@
+"""Settings of the gear-assignment updates (Sec 4.3; the paper's values where it states them)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass
+class GearUpdateConfig:
+    """Schedule and settings of the gear-assignment updates (Sec 4.3; paper values where stated)."""
+
+    enabled: bool = True
+    """False: never update gears (ablation "no gear updates")."""
+    iterations_per_epoch: int = 1500
+    """What L and L' count: as in the paper's code, an epoch is a fixed number of iterations, not a pass over
+    the data (there 4,000 iterations, 20 epochs per run). The same schedule then holds at every scene size.
+    The presets take 1/20 of their default iterations."""
+    epochs_between_updates: float = 3.0
+    """L: epochs of radiance-field training between updates."""
+    epochs_after_updates: float = 10.0
+    """L': epochs of training kept after the last update."""
+    views_per_update: int = 4
+    """Training views (camera, time) rendered per update."""
+    loss_map_size: int = 128
+    """Loss maps are rendered with this longest side (or the image's, if smaller)."""
+    patch_size: int = 8
+    """Patch side in loss-map pixels."""
+    top_k: int = 3
+    """k highest-loss patches give positive prompts, k lowest negative ones."""
+    sam_loss_weight: float = 0.01
+    """lambda in L(r) = L_pho(r) + lambda L_SAM(r)."""
+    variance_threshold: float = 1e-4
+    """Updates stop once the mean variance of the loss maps is below this."""
+    mask_source: Literal["sam", "loss_threshold"] = "sam"
+    """'sam': SAM decoder on prompts; 'loss_threshold': RGB loss map above mean + k std (the paper's
+    "w/o embedding" ablation)."""
+    loss_threshold_std: float = 2.0
+    """k for mask_source 'loss_threshold'."""
+    rays_per_set: int = 4096
+    """Rays sampled inside (S_upshift) and outside (S_stay) the masks, per update."""
+    stay_weight: float = 1.0
+    """lambda_stay of Eq 10."""
+    margin: float = 0.25
+    """Points are pulled this far inside the interval of their target level."""
+    max_steps: int = 100
+    """Gradient steps on the gear function per update (Eq 11, repeated until the targets are met, at most
+    this many). Measured on the mixed synthetic scene (two updates, all 57k weighted points): the weight
+    share of points at their target level was 0.971 / 0.886 after 10 steps, 0.983 / 0.972 after 80
+    and 0.986 / 0.978 after 300, so steps past 100 cost time for almost nothing."""
+    max_points: int = 8192
+    """Points per set (S_upshift, S_stay) in the Eq 11 steps; larger sets are drawn by weight (``select_points``),
+    so that a step costs the same whatever the rays and samples per ray."""
+    motion_threshold: float = 0.03
+    """Mean absolute RGB change over time (patch average, in [0, 1]) for a patch to count as moving;
+    0 turns the motion gate off (the paper's behaviour)."""
+    motion_frames: int = 8
+    """Other frames of the same camera compared with the view's frame (spread over the video)."""

@@ -1,0 +1,65 @@
+"""When the gear-assignment updates run (Sec 4.3: every L epochs until L' remain), which training views each
+update uses, and the record of what the updates have done (kept in checkpoints)."""
+
+from __future__ import annotations
+
+from typing import List
+
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from torch import nn
+
+from gear_nerfstudio.gears.config import GearUpdateConfig
+
+
+def update_interval(config: GearUpdateConfig) -> int:
+    """Iterations between two updates: L epochs of ``iterations_per_epoch`` iterations."""
+    return max(1, round(config.epochs_between_updates * config.iterations_per_epoch))
+
+
+def planned_updates(config: GearUpdateConfig, first_step: int, last_step: int) -> List[int]:
+    """Steps of a run from ``first_step`` to ``last_step`` at which an update is due (Sec 4.3): every L epochs,
+    while at least L' epochs of training remain after it. The updates end earlier if the loss maps' mean
+    variance falls below the threshold."""
+    interval = update_interval(config)
+    kept = config.epochs_after_updates * config.iterations_per_epoch
+    start = -(-max(1, first_step) // interval) * interval
+    return [step for step in range(start, last_step + 1, interval) if last_step - step >= kept]
+
+
+def describe_plan(config: GearUpdateConfig, steps: List[int], cameras: Cameras, rays_per_batch: int) -> str:
+    """The planned update steps, and what an interval between them is for this data in passes over it."""
+    pixels = float((cameras.width * cameras.height).sum())
+    passes = update_interval(config) * rays_per_batch / pixels
+    return (
+        f"Gear updates (Sec 4.3) planned at steps {', '.join(map(str, steps))}: every {update_interval(config)} "
+        f"iterations (L = {config.epochs_between_updates:g} epochs of {config.iterations_per_epoch}), while "
+        f"L' = {config.epochs_after_updates:g} epochs remain; an interval is {passes:.3g} passes over the "
+        f"{pixels / 1e6:.4g} M training pixels. They end early once the loss maps' mean variance is below "
+        f"{config.variance_threshold:g}."
+    )
+
+
+class NoGearUpdates(ValueError):
+    """A training run with gear updates enabled would get none."""
+
+
+class GearUpdateState(nn.Module):
+    """What the updates have done so far, as buffers, so that checkpoints keep it and a resumed run goes on."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
+        self.register_buffer("finished", torch.zeros((), dtype=torch.bool))
+
+
+def spread_views(frame_ids: np.ndarray, count: int, rng: np.random.Generator) -> List[int]:
+    """Training images for one update: ``count`` frames evenly spread over the video (a random offset), each from
+    a random camera. The gear function changes only at the times it is updated, so every update spreads its
+    views over time, and successive updates (other offsets) cover the frames between."""
+    frames = np.unique(frame_ids)
+    count = min(count, len(frame_ids))
+    positions = (rng.random() + np.arange(count)) * len(frames) / count
+    chosen = frames[np.floor(positions).astype(int) % len(frames)]
+    return [int(rng.choice(np.flatnonzero(frame_ids == frame))) for frame in chosen]

@@ -1,0 +1,92 @@
+"""Upshift targets and steps (Sec 4.3, Eq 10-11): the levels each sampled point is pulled to, the loss, the
+points that take part, and the gradient steps on the gear function."""
+
+from __future__ import annotations
+
+from typing import Optional, Protocol, Tuple
+
+import torch
+from torch import Tensor
+
+from gear_nerfstudio.fields.gear_function import gear_level
+
+
+class GearFunctionOwner(Protocol):
+    """What the Eq 11 steps need: the gear function g (Eq 4) at world positions and times, and N_gear."""
+
+    num_gears: int
+
+    def gear_values(self, positions: Tensor, times: Optional[Tensor]) -> Tensor:
+        ...
+
+
+def level_targets(levels: Tensor, upshift: Tensor, num_gears: int, still: Optional[Tensor] = None) -> Tensor:
+    """Target levels of Eq 10: p + 1 for S_upshift (never above N_gear), p for S_stay, and 1 for the points of
+    S_stay in ``still`` (motion gate: pixels whose ground truth does not change around the view's time)."""
+    stay = levels if still is None else torch.where(still, torch.ones_like(levels), levels)
+    return torch.where(upshift, (levels + 1).clamp(max=num_gears), stay)
+
+
+def upshift_loss(
+    g: Tensor, targets: Tensor, weights: Tensor, upshift: Tensor, stay_weight: float, num_gears: int, margin: float
+) -> Tensor:
+    """Eq 10 as a weighted squared hinge: the distance of g from the interval of its target level q,
+    [q - 1 + margin, q - margin] (no lower bound for q = 1, no upper bound for q = N_gear)."""
+    low = torch.where(targets > 1, targets - 1 + margin, torch.full_like(g, -torch.inf))
+    high = torch.where(targets < num_gears, targets - margin, torch.full_like(g, torch.inf))
+    error = (torch.relu(low - g) + torch.relu(g - high)).square() * weights
+    up = error[upshift].sum() / weights[upshift].sum().clamp(min=1e-12)
+    stay = error[~upshift].sum() / weights[~upshift].sum().clamp(min=1e-12)
+    return up + stay_weight * stay
+
+
+def select_points(
+    weights: Tensor, upshift: Tensor, max_points: int, generator: torch.Generator
+) -> Tuple[Tensor, Tensor]:
+    """The points of S_upshift and S_stay that take part in the Eq 11 steps, and their weights.
+
+    Only points whose weight is at least 1e-3 of the largest count: the others (most samples of a ray, in the
+    empty space before and behind the surface it sees) add almost nothing to Eq 10. A set with more than
+    ``max_points`` such points is replaced by ``max_points`` draws with probability proportional to weight, each
+    of weight 1: Eq 10 normalises each set by its total weight, so the expected loss is the same, and the cost
+    of a step no longer grows with the number of rays and samples.
+    """
+    counted = weights >= 1e-3 * weights.max().clamp(min=1e-12)
+    indices, selected = [], []
+    for in_set in (upshift, ~upshift):
+        members = torch.nonzero(counted & in_set)[:, 0]
+        if len(members) > max_points:
+            draws = torch.multinomial(weights[members], max_points, replacement=True, generator=generator)
+            indices.append(members[draws])
+            selected.append(torch.ones(max_points, device=weights.device))
+        else:
+            indices.append(members)
+            selected.append(weights[members])
+    return torch.cat(indices), torch.cat(selected)
+
+
+def shift_gears(
+    field: GearFunctionOwner,
+    optimizer: torch.optim.Optimizer,
+    points: Tensor,
+    times: Tensor,
+    weights: Tensor,
+    upshift: Tensor,
+    targets: Tensor,
+    stay_weight: float,
+    margin: float,
+    max_steps: int,
+) -> int:
+    """Eq 11 steps of `optimizer` (on the gear function only) until the points sit at their target levels, at
+    most max_steps; returns the number of steps taken."""
+    steps = 0
+    while steps < max_steps:
+        optimizer.zero_grad(set_to_none=True)
+        g = field.gear_values(points, times)
+        if bool((gear_level(g.detach(), field.num_gears) == targets).all()):
+            break
+        upshift_loss(g, targets, weights, upshift, stay_weight, field.num_gears, margin).backward()
+        optimizer.step()
+        steps += 1
+    optimizer.zero_grad(set_to_none=True)
+    return steps

@@ -1,0 +1,93 @@
+"""The Gear-NeRF pipeline: nerfstudio's VanillaPipeline that owns the SAM backend (Sec 4.2), the gear-update
+callback (Sec 4.3) and the viewer's tracking controls (Sec 4.5).
+
+The backend is built once and handed to the datamanager (its encoder gives the targets of Eq 9), to the gear
+updates (its decoder gives the upshift masks) and to tracking (its decoder gives the tracked masks). The
+updates work on the model and the datamanager through narrow interfaces (``gears.updater.UpdateTarget`` and
+``TrainingViews``), so that neither the model nor the datamanager knows about them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import List, Literal, Optional, Type
+
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from torch.cuda.amp.grad_scaler import GradScaler
+
+from gear_nerfstudio.data.datamanager import GearDataManager, GearDataManagerConfig
+from gear_nerfstudio.gears.config import GearUpdateConfig
+from gear_nerfstudio.gears.schedule import GearUpdateState
+from gear_nerfstudio.gears.updater import GearUpdater
+from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.sam.config import BuiltinSamConfig, SamConfigChoice
+from gear_nerfstudio.tracking.viewer import ViewerTracking
+
+
+@dataclass
+class GearPipelineConfig(VanillaPipelineConfig):
+    """Gear-NeRF pipeline: datamanager with SAM features, model, SAM backend, gear updates."""
+
+    _target: Type = field(default_factory=lambda: GearPipeline)
+    datamanager: GearDataManagerConfig = field(default_factory=GearDataManagerConfig)
+    model: GearNeRFModelConfig = field(default_factory=GearNeRFModelConfig)
+    sam: SamConfigChoice = field(default_factory=BuiltinSamConfig)
+    """SAM backend (Sec 4.2): its encoder gives the targets S(r) of Eq 9, its decoder the masks of Sec 4.3 and
+    4.5."""
+    gear_updates: GearUpdateConfig = field(default_factory=GearUpdateConfig)
+    """Gear-assignment updates during training (Sec 4.3)."""
+
+
+class GearPipeline(VanillaPipeline):
+    """VanillaPipeline plus the SAM backend, the gear updates' callback and state, and the viewer's tracking."""
+
+    config: GearPipelineConfig
+    datamanager: GearDataManager
+
+    def __init__(
+        self,
+        config: GearPipelineConfig,
+        device: str,
+        test_mode: Literal["test", "val", "inference"] = "val",
+        world_size: int = 1,
+        local_rank: int = 0,
+        grad_scaler: Optional[GradScaler] = None,
+    ):
+        super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
+        self.sam_backend = config.sam.setup()
+        sam_dim = self.model.config.sam_dim
+        if config.datamanager.use_sam_features and sam_dim != self.sam_backend.embedding_dim:
+            raise ValueError(
+                f"The model's sam_dim is {sam_dim} but the SAM backend {self.sam_backend.name!r} gives "
+                f"{self.sam_backend.embedding_dim}-dimensional features: set --pipeline.model.sam-dim "
+                f"{self.sam_backend.embedding_dim}."
+            )
+        self.datamanager.attach_sam(self.sam_backend)
+        self.gear_update_state = GearUpdateState()
+        self.viewer_tracking = ViewerTracking(self.model, self.sam_backend)
+        self.model.render_hooks.append(self.viewer_tracking.render_hook)
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        """The datamanager's and the model's callbacks, the viewer tracking's (a training step makes its kept
+        features stale), and the gear-assignment updates (Sec 4.3) when the model has more than one gear."""
+        after_step = [TrainingCallbackLocation.AFTER_TRAIN_ITERATION]
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        callbacks.append(TrainingCallback(after_step, self.viewer_tracking.forget))
+        trainer = training_callback_attributes.trainer
+        if not self.config.gear_updates.enabled or self.model.num_gears == 1 or trainer is None:
+            return callbacks
+        first_step = getattr(trainer, "_start_step", 0)
+        updater = GearUpdater(
+            self.config.gear_updates,
+            self.model,
+            self.datamanager,
+            self.sam_backend,
+            training_callback_attributes.optimizers.optimizers["gear_field"],
+            self.gear_update_state,
+            rays_per_batch=self.datamanager.config.train_num_rays_per_batch,
+            first_step=first_step,
+            last_step=first_step + trainer.config.max_num_iterations - 1,
+            seed=trainer.config.machine.seed,
+        )
+        return callbacks + [TrainingCallback(after_step, updater)]

@@ -1,0 +1,1 @@
+"""Tools around the method: the demo and the synthetic scenes with ground truth."""
