@@ -5,7 +5,9 @@ import math
 import pytest
 import torch
 
-from gear_nerfstudio.fields.gear_field import GearField, sample_points, temporal_resolutions
+from nerfstudio.field_components.field_heads import FieldHeadNames
+
+from gear_nerfstudio.fields.gear_field import GearField, GearFieldHeadNames, sample_points, temporal_resolutions
 from gear_nerfstudio.fields.gear_function import gear_level
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -192,6 +194,20 @@ def test_outputs_shapes_range_and_density_outside_box():
     assert (outputs["density"][~outside] > 0).all()
     no_times = evaluate(field, positions, directions, None)
     assert torch.allclose(no_times["density"], evaluate(field, positions, directions, torch.zeros_like(times))["density"])
+
+
+def test_density_fn_and_head_names_follow_nerfstudio_fields():
+    """nerfstudio code that takes a Field (density_fn for samplers, FieldHeadNames outputs) gets the same density
+    from density_fn as from the full forward pass, and the SAM embedding and gear level under their own names."""
+    field = small_field(num_frames=6)
+    positions, times = random_inputs(64)
+    directions = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    outputs = field(sample_points(positions, times, directions))
+    names = {FieldHeadNames.RGB, FieldHeadNames.DENSITY, GearFieldHeadNames.SAM, GearFieldHeadNames.GEAR_LEVEL}
+    assert names <= set(outputs)
+    torch.testing.assert_close(field.density_fn(positions, times), outputs[FieldHeadNames.DENSITY])
+    levels = outputs[GearFieldHeadNames.GEAR_LEVEL].reshape(-1)
+    assert torch.equal(levels, field.gear_levels(positions, times).reshape(-1).to(levels.dtype))
 
 
 def test_unbounded_scene_is_contracted():
