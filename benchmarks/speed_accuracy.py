@@ -3,7 +3,7 @@ real multi-view video, with seeds.
 
 One command trains and evaluates every (scene, method, seed), one run after the other on this machine:
 
-    .venv/bin/python benchmarks/speed_accuracy.py --output outputs/speed_accuracy --results benchmarks/results
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/speed_accuracy.py --output outputs/speed_accuracy --results benchmarks/results
 
 Scenes (``SCENES``): synthetic scenes with ground truth (``gear_nerfstudio.tools.synthetic``, Neural 3D Video format,
 held-out camera cam00; moving pixels from the ground-truth motion) at two sizes, and the real capture
