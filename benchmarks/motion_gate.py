@@ -52,7 +52,7 @@ class MotionGateBenchmark:
 
         from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
         from gear_nerfstudio.gears.config import GearUpdateConfig
-        from gear_nerfstudio.gears.loss_maps import frame_change, patch_means, patch_size_for
+        from gear_nerfstudio.gears.loss_maps import frame_change, patch_means, patch_size_for, resized_image
 
         config = GearUpdateConfig()
         parser = TechnicolorDataParserConfig(
@@ -72,7 +72,7 @@ class MotionGateBenchmark:
             width, height = int(dataset.cameras.width[index]), int(dataset.cameras.height[index])
             scale = min(1.0, config.loss_map_size / max(width, height))
             size = (int(height * scale), int(width * scale))  # as Cameras.rescale_output_resolution
-            change = frame_change(dataset, index, size, config.motion_frames)
+            change = frame_change(dataset, index, resized_image(dataset, index, size), config.motion_frames)
             patch = patch_size_for(size, config.patch_size)
             if camera not in ever:
                 ever[camera] = patch_means(sum(self.mask(path, size) for path in (self.masks / camera).glob("*.png")), patch)

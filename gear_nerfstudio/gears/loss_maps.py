@@ -76,18 +76,19 @@ def resized_image(dataset: InputDataset, image_index: int, size: Tuple[int, int]
 
 
 def frame_change(
-    dataset: InputDataset, image_index: int, size: Tuple[int, int], num_frames: int, window: Optional[int] = None
+    dataset: InputDataset, image_index: int, rgb: Tensor, num_frames: int, window: Optional[int] = None
 ) -> Tensor:
-    """Motion gate: per pixel at size (h, w), the largest mean absolute RGB difference between an image and up to
-    ``num_frames`` other frames of the same camera, spread over the video or, with ``window``, over the frames at
-    most ``window`` frames away (0 with none). Uses the dataparser's ``camera_ids`` and ``frame_ids`` metadata."""
+    """Motion gate: per pixel of ``rgb`` (image ``image_index`` already resized to (h, w, 3) by ``resized_image``),
+    the largest mean absolute RGB difference to up to ``num_frames`` other frames of the same camera, spread over
+    the video or, with ``window``, over the frames at most ``window`` frames away (0 with none). Uses the
+    dataparser's ``camera_ids`` and ``frame_ids`` metadata."""
     cameras, frames = dataset.metadata["camera_ids"], dataset.metadata["frame_ids"]
     near = torch.ones_like(frames, dtype=torch.bool) if window is None else (frames - frames[image_index]).abs() <= window
     others = torch.nonzero((cameras == cameras[image_index]) & (frames != frames[image_index]) & near)[:, 0]
+    size = tuple(rgb.shape[:2])
     change = torch.zeros(size)
     if len(others) == 0:
         return change
-    rgb = resized_image(dataset, image_index, size)
     picks = np.unique(np.linspace(0, len(others) - 1, min(num_frames, len(others))).round())
     for index in others[torch.from_numpy(picks.astype(np.int64))].tolist():
         change = torch.maximum(change, (rgb - resized_image(dataset, int(index), size)).abs().mean(-1))

@@ -219,7 +219,8 @@ class GearUpdater:
         full_size = (int(camera.height[0, 0]), int(camera.width[0, 0]))
         camera.rescale_output_resolution(min(1.0, self.config.loss_map_size / max(full_size)))
         size = (int(camera.height[0, 0]), int(camera.width[0, 0]))
-        rgb = resized_image(dataset, image_index, size).to(self.target.device)
+        image = resized_image(dataset, image_index, size)
+        rgb = image.to(self.target.device)
         outputs = self.target.render_view(camera)
         loss = (outputs["rgb"] - rgb).square().sum(-1)
         rgb_loss = loss.clone()
@@ -234,14 +235,15 @@ class GearUpdater:
             loss = loss + self.config.sam_loss_weight * sam_error.reshape(size)
         return LossMap(
             image_index, camera, rgb, loss, rgb_loss, self.target.visible_surface(camera, outputs),
-            self.change(image_index, size, self.config.motion_frames), self.change(image_index, size, 2, window=1),
+            self.change(image_index, image, self.config.motion_frames), self.change(image_index, image, 2, window=1),
         )  # fmt: skip
 
-    def change(self, image_index: int, size: Tuple[int, int], num_frames: int, window: Optional[int] = None) -> Tensor:
-        """Motion gate of one view at the loss-map size (``frame_change``; zero when the gate is off)."""
+    def change(self, image_index: int, image: Tensor, num_frames: int, window: Optional[int] = None) -> Tensor:
+        """Motion gate of one view at the loss-map size (``frame_change`` on the view's resized image; zero when
+        the gate is off)."""
         if self.config.motion_threshold <= 0:
-            return torch.zeros(size, device=self.target.device)
-        return frame_change(self.views.train_dataset, image_index, size, num_frames, window).to(self.target.device)
+            return torch.zeros(image.shape[:2], device=self.target.device)
+        return frame_change(self.views.train_dataset, image_index, image, num_frames, window).to(self.target.device)
 
     def upshift_mask(self, loss_map: LossMap) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
         """The upshift mask (h, w) of one view and its prompts (x, y), labels in loss-map pixels.

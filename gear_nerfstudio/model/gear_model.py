@@ -9,10 +9,11 @@ radiance optimiser never sees; it is trained by the gear-update step (Sec 4.3, E
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Literal, Optional, Tuple, Type
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -149,6 +150,17 @@ def lpips_weights_path() -> Path:
     from torchvision.models import AlexNet_Weights
 
     return Path(torch.hub.get_dir()) / "checkpoints" / Path(AlexNet_Weights.DEFAULT.url).name
+
+
+@contextlib.contextmanager
+def evaluating(model: Model) -> Iterator[None]:
+    """Render in evaluation mode (no sample jitter), restoring the model's mode afterwards."""
+    was_training = model.training
+    model.eval()
+    try:
+        yield
+    finally:
+        model.train(was_training)
 
 
 class GearNeRFModel(Model):
@@ -340,13 +352,9 @@ class GearNeRFModel(Model):
     @torch.no_grad()
     def render_view(self, camera: Cameras) -> Dict[str, Tensor]:
         """A full render of one camera in evaluation mode (no sample jitter), restoring the mode afterwards."""
-        was_training = self.training
-        self.eval()
-        try:
-            rays = camera.to(self.device).generate_rays(camera_indices=0, keep_shape=True)
+        rays = camera.to(self.device).generate_rays(camera_indices=0, keep_shape=True)
+        with evaluating(self):
             return self.get_outputs_for_camera_ray_bundle(rays)
-        finally:
-            self.train(was_training)
 
     @torch.no_grad()
     def visible_surface(self, camera: Cameras, outputs: Dict[str, Tensor]) -> Float[Tensor, "H W 3"]:

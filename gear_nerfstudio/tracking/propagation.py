@@ -16,9 +16,8 @@ the paper's box-only propagation remains as "box".
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -26,6 +25,7 @@ from scipy import ndimage
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
+from gear_nerfstudio.model.gear_model import evaluating
 from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, valid_grid
 from gear_nerfstudio.tracking.click import TrackingError, check_time, image_size, single_camera
 
@@ -45,22 +45,11 @@ class TrackedMask:
     prompt: Dict = field(default_factory=dict)  # {"points", "labels"} (click), {"box", "from_time"} (+ points, labels)
 
 
-@contextlib.contextmanager
-def _evaluating(model: "Model") -> Iterator[None]:
-    """Render in eval mode (no sample jitter), restoring the model's mode afterwards."""
-    was_training = model.training
-    model.eval()
-    try:
-        yield
-    finally:
-        model.train(was_training)
-
-
 def _render(model: "Model", camera: Cameras, time: float, pixels: Tensor) -> Dict[str, Tensor]:
     """Model outputs for rays through pixel coordinates (..., 2) = (x, y) of a camera at a time."""
     camera = single_camera(camera, time).to(model.device)
     rays = camera.generate_rays(camera_indices=0, coords=pixels[..., [1, 0]].to(model.device))
-    with _evaluating(model):
+    with evaluating(model):
         return model.get_outputs_for_camera_ray_bundle(rays)
 
 

@@ -183,8 +183,9 @@ class ViewerTracking(torch.nn.Module):
             pixel = project_prompt(camera, selection.point)
         except TrackingError:
             return rgb
-        if view_key(camera) != self.view:
-            self.view, self.embeddings = view_key(camera), {}
+        view = view_key(camera)
+        if view != self.view:
+            self.view, self.embeddings = view, {}
 
         def embedding_at(time_: float) -> Embedding:
             key = round(time_, TIME_DIGITS)  # the slider's float32 time and the frames' times meet
