@@ -15,7 +15,7 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Sequence, Tuple, Type
+from typing import List, Optional, Sequence, Tuple, Type
 
 import numpy as np
 from nerfstudio.cameras.cameras import CameraType
@@ -59,6 +59,7 @@ class GoogleImmersiveDataParserConfig(MultiViewVideoDataParserConfig):
 class GoogleImmersiveDataParser(MultiViewVideoDataParser):
     config: GoogleImmersiveDataParserConfig
     default_held_out = "camera_0001"
+    parser_name = "google-immersive-data"
 
     def read_rig(self) -> ParsedRig:
         folder = self.config.data
@@ -116,8 +117,9 @@ class GoogleImmersiveDataParser(MultiViewVideoDataParser):
 
     def frame_files(
         self, rig: ParsedRig, cameras: Sequence[int], frames: Sequence[int], sizes: Sequence[Tuple[int, int]]
-    ) -> List[List[Path]]:
-        return cache_video_frames([self._videos[cam] for cam in cameras], frames, sizes, self.config.cache_dir)
+    ) -> List[List[Optional[Path]]]:
+        videos = [self._videos[cam] for cam in cameras]
+        return cache_video_frames(videos, frames, sizes, self.config.cache_dir, self.config.skip_damaged_frames)
 
 
 def _read_models(path: Path) -> List[dict]:

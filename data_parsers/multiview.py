@@ -5,7 +5,8 @@ dataset's world units) and says where its frames are; this module turns that int
 
 - times: frame index within the loaded window / (T - 1), 0 when T = 1;
 - split: train = every camera but the held-out one; val = test = the held-out camera, all frames;
-- world: rotated so the mean camera up is +z, centred and scaled so the region the cameras observe
+- world: rotated so the mean camera up is +z and the held-out camera looks along -y (the frame nerfstudio's
+  spiral path assumes: its cameras come out upright), centred and scaled so the region the cameras observe
   fits the scene box [-1, 1]^3 (forward-facing rigs: their frusta between near and far; rigs that
   surround their scene, such as a dome: the box of the camera centres; unbounded rigs: a ball of
   radius sqrt(near * far) around the rig, with `unbounded` set for the model to contract what lies
@@ -29,6 +30,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 
 from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.data.layouts import layout_hint
 
 
 @dataclass
@@ -55,6 +57,9 @@ class MultiViewVideoDataParserConfig(DataParserConfig):
     (forward-facing rigs); 'rig': the box of the camera centres, 10 % larger (rigs that surround their scene,
     such as a dome, whose frusta reach far past the opposite wall); 'auto': 'rig' when the rig surrounds its
     scene (``surrounds_scene``), else 'frusta'."""
+    skip_damaged_frames: bool = False
+    """Leave damaged frames (decoder errors, broken image files) out, with one warning line each, instead of
+    stopping with an error."""
 
 
 @dataclass
@@ -83,6 +88,8 @@ class MultiViewVideoDataParser(DataParser):
     config: MultiViewVideoDataParserConfig
     includes_time: bool = True
     default_held_out: str = ""
+    parser_name: str = ""
+    """The parser's ns-train subcommand."""
 
     def __init__(self, config: MultiViewVideoDataParserConfig):
         super().__init__(config)
@@ -95,13 +102,17 @@ class MultiViewVideoDataParser(DataParser):
     @abstractmethod
     def frame_files(
         self, rig: ParsedRig, cameras: Sequence[int], frames: Sequence[int], sizes: Sequence[Tuple[int, int]]
-    ) -> List[List[Path]]:
-        """Image files [camera][frame] of the given frame numbers at the given (width, height) sizes."""
+    ) -> List[List[Optional[Path]]]:
+        """Image files [camera][frame] of the given frame numbers at the given (width, height) sizes; None for a
+        damaged frame left out (``skip_damaged_frames``)."""
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         if self.config.downscale_factor < 1:
             raise DatasetError(f"downscale_factor must be >= 1, got {self.config.downscale_factor}")
-        rig = self.read_rig()
+        try:
+            rig = self.read_rig()
+        except DatasetError as err:
+            raise DatasetError(f"{err}{layout_hint(self.config.data, self.parser_name)}") from err
         frames = self._window(rig)
         held_out_name = self.config.held_out_camera or self.default_held_out
         if held_out_name not in rig.names:
@@ -117,8 +128,11 @@ class MultiViewVideoDataParser(DataParser):
         d = self.config.downscale_factor
         sizes = [(int(rig.width[i]) // d, int(rig.height[i]) // d) for i in cameras]
         files = self.frame_files(rig, cameras, frames, sizes)
+        kept = torch.tensor([path is not None for camera_files in files for path in camera_files])
+        if not kept.any():
+            raise DatasetError(f"{self.config.data}: every {split} frame of the window is damaged")
 
-        transform, scale = _normalisation(rig, self.config.orientation_method, self.config.scene_box)
+        transform, scale = _normalisation(rig, self.config.orientation_method, self.config.scene_box, held_out)
         c2w = _apply(transform, scale, torch.from_numpy(rig.camera_to_worlds).float())
 
         T = len(frames)
@@ -148,8 +162,8 @@ class MultiViewVideoDataParser(DataParser):
             times=(frame_ids.float() / max(T - 1, 1))[:, None],
         )
         return DataparserOutputs(
-            image_filenames=[path for camera_files in files for path in camera_files],
-            cameras=cameras_out,
+            image_filenames=[path for camera_files in files for path in camera_files if path is not None],
+            cameras=cameras_out[kept],
             scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
             dataparser_transform=transform,
             dataparser_scale=scale,
@@ -158,8 +172,8 @@ class MultiViewVideoDataParser(DataParser):
                 "far": rig.far * scale,
                 "unbounded": rig.unbounded,
                 "num_frames": T,
-                "camera_ids": cam_ids,
-                "frame_ids": frame_ids,
+                "camera_ids": cam_ids[kept],
+                "frame_ids": frame_ids[kept],
                 "camera_names": list(rig.names),
                 "frame_numbers": list(frames),
             },
@@ -199,12 +213,32 @@ def surrounds_scene(camera_to_worlds: np.ndarray) -> bool:
     return bool((forward @ forward.T).min() < 0 and (forward * inward).sum(-1).mean() > 0)
 
 
-def _normalisation(rig: ParsedRig, orientation_method: str, scene_box: str) -> Tuple[torch.Tensor, float]:
-    """Rotation + translation (3x4) and scale that map the observed region into [-1, 1]^3."""
+def _facing_minus_y(rotation: np.ndarray, camera_to_world: np.ndarray) -> np.ndarray:
+    """`rotation` followed by the turn about +z that makes the camera look along -y.
+
+    nerfstudio's spiral path takes the start camera's third column (its backward axis, in world coordinates)
+    as the up vector of its camera frame; that vector is the camera's own up only when the camera looks along
+    -y in a z-up world. A camera looking (almost) straight up or down has no heading to turn.
+    """
+    backward = rotation @ camera_to_world[:, 2]
+    if np.hypot(backward[0], backward[1]) < 1e-6:
+        return rotation
+    angle = np.arctan2(backward[0], backward[1])
+    turn = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    return turn @ rotation
+
+
+def _normalisation(
+    rig: ParsedRig, orientation_method: str, scene_box: str, reference: int
+) -> Tuple[torch.Tensor, float]:
+    """Rotation + translation (3x4) and scale that map the observed region into [-1, 1]^3; with orientation
+    'up', the camera `reference` (the held-out one, where ns-render's spiral starts) looks along -y."""
     poses = torch.eye(4).repeat(len(rig.names), 1, 1)
     poses[:, :3, :] = torch.from_numpy(rig.camera_to_worlds).float()
     _, orient = camera_utils.auto_orient_and_center_poses(poses, method=orientation_method, center_method="none")
     rotation = orient[:, :3].double().numpy()
+    if orientation_method == "up":
+        rotation = _facing_minus_y(rotation, rig.camera_to_worlds[reference])
     centres = rig.camera_to_worlds[:, :, 3] @ rotation.T
     around_rig = scene_box == "rig" or (scene_box == "auto" and surrounds_scene(rig.camera_to_worlds))
     if rig.unbounded or around_rig:

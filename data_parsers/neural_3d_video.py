@@ -41,6 +41,7 @@ class Neural3DVideoDataParserConfig(MultiViewVideoDataParserConfig):
 class Neural3DVideoDataParser(MultiViewVideoDataParser):
     config: Neural3DVideoDataParserConfig
     default_held_out = "cam00"
+    parser_name = "neural-3d-video-data"
 
     def read_rig(self) -> ParsedRig:
         folder = self.config.data
@@ -101,5 +102,6 @@ class Neural3DVideoDataParser(MultiViewVideoDataParser):
 
     def frame_files(
         self, rig: ParsedRig, cameras: Sequence[int], frames: Sequence[int], sizes: Sequence[Tuple[int, int]]
-    ) -> List[List[Path]]:
-        return cache_video_frames([self._videos[cam] for cam in cameras], frames, sizes, self.config.cache_dir)
+    ) -> List[List[Optional[Path]]]:
+        videos = [self._videos[cam] for cam in cameras]
+        return cache_video_frames(videos, frames, sizes, self.config.cache_dir, self.config.skip_damaged_frames)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Sequence, Tuple, Type
+from typing import Dict, List, Optional, Sequence, Tuple, Type
 
 import numpy as np
 from nerfstudio.cameras.cameras import CameraType
@@ -43,6 +43,7 @@ class TechnicolorDataParserConfig(MultiViewVideoDataParserConfig):
 class TechnicolorDataParser(MultiViewVideoDataParser):
     config: TechnicolorDataParserConfig
     default_held_out = "10"
+    parser_name = "technicolor-data"
 
     def read_rig(self) -> ParsedRig:
         folder = self.config.data
@@ -76,7 +77,7 @@ class TechnicolorDataParser(MultiViewVideoDataParser):
             rotation_cv = world_to_cam.T
             c2w[cam, :, :3] = rotation_cv * np.array([1.0, -1.0, -1.0])  # OpenCV -> OpenGL axes
             c2w[cam, :, 3] = -rotation_cv @ np.array([tx, ty, tz])
-            sizes[cam] = _image_size(files[cam][all_numbers[0]])
+            sizes[cam] = _image_size(files[cam][all_numbers[0]], all_numbers[0])
         rows_arr = np.asarray(rows)
         return ParsedRig(
             names=[f"{cam:02d}" for cam in range(n)],
@@ -97,9 +98,9 @@ class TechnicolorDataParser(MultiViewVideoDataParser):
 
     def frame_files(
         self, rig: ParsedRig, cameras: Sequence[int], frames: Sequence[int], sizes: Sequence[Tuple[int, int]]
-    ) -> List[List[Path]]:
+    ) -> List[List[Optional[Path]]]:
         images = [[self._files[cam][n] for n in frames] for cam in cameras]
-        return cache_image_frames(images, sizes, self.config.cache_dir)
+        return cache_image_frames(images, frames, sizes, self.config.cache_dir, self.config.skip_damaged_frames)
 
     @staticmethod
     def _frames_by_camera(folder: Path) -> Dict[int, Dict[int, Path]]:
@@ -145,9 +146,9 @@ def _read_camera_rows(path: Path) -> List[List[float]]:
     return rows
 
 
-def _image_size(path: Path) -> Tuple[int, int]:
+def _image_size(path: Path, frame: int) -> Tuple[int, int]:
     try:
         with Image.open(path) as image:
             return image.size
     except OSError as err:
-        raise DatasetError(f"{path}: cannot read the image ({err})") from err
+        raise DatasetError(f"{path}: frame {frame} is damaged: cannot read the image ({err})") from err

@@ -9,19 +9,23 @@ updates work on the model and the datamanager through narrow interfaces (``gears
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-from typing import List, Literal, Optional, Type
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Type
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from gear_nerfstudio.data.datamanager import GearDataManager, GearDataManagerConfig
+from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.gears.config import GearUpdateConfig
 from gear_nerfstudio.gears.schedule import GearUpdateState
 from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
 from gear_nerfstudio.sam.config import BuiltinSamConfig, SamConfigChoice
+from gear_nerfstudio.sam.interface import SamBackend
 from gear_nerfstudio.tracking.viewer import ViewerTracking
 
 
@@ -37,6 +41,16 @@ class GearPipelineConfig(VanillaPipelineConfig):
     4.5."""
     gear_updates: GearUpdateConfig = field(default_factory=GearUpdateConfig)
     """Gear-assignment updates during training (Sec 4.3)."""
+
+
+def check_sam_dim(config: GearPipelineConfig, backend: SamBackend) -> None:
+    """The model's SAM embedding has the backend's feature dimension (Eq 9 compares the two)."""
+    sam_dim = config.model.sam_dim
+    if config.datamanager.use_sam_features and sam_dim != backend.embedding_dim:
+        raise InputError(
+            f"the model's sam_dim is {sam_dim} but the SAM backend {backend.name!r} gives "
+            f"{backend.embedding_dim}-dimensional features: set --pipeline.model.sam-dim {backend.embedding_dim}"
+        )
 
 
 class GearPipeline(VanillaPipeline):
@@ -56,17 +70,19 @@ class GearPipeline(VanillaPipeline):
     ):
         super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
         self.sam_backend = config.sam.setup()
-        sam_dim = self.model.config.sam_dim
-        if config.datamanager.use_sam_features and sam_dim != self.sam_backend.embedding_dim:
-            raise ValueError(
-                f"The model's sam_dim is {sam_dim} but the SAM backend {self.sam_backend.name!r} gives "
-                f"{self.sam_backend.embedding_dim}-dimensional features: set --pipeline.model.sam-dim "
-                f"{self.sam_backend.embedding_dim}."
-            )
+        check_sam_dim(config, self.sam_backend)
         self.datamanager.attach_sam(self.sam_backend)
         self.gear_update_state = GearUpdateState()
         self.viewer_tracking = ViewerTracking(self.model, self.sam_backend)
         self.model.render_hooks.append(self.viewer_tracking.render_hook)
+
+    def get_average_eval_image_metrics(
+        self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False
+    ) -> Dict[str, float]:
+        """nerfstudio's averages over the held-out images (ns-eval); the spread of a single image cannot be
+        computed and is left out instead of being written as NaN."""
+        metrics = super().get_average_eval_image_metrics(step, output_path, get_std)
+        return {key: value for key, value in metrics.items() if not (key.endswith("_std") and math.isnan(value))}
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         """The datamanager's and the model's callbacks, the viewer tracking's (a training step makes its kept

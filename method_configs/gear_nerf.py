@@ -13,7 +13,6 @@ from typing import List
 
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from gear_nerfstudio.data.datamanager import GearDataManagerConfig
@@ -22,6 +21,7 @@ from gear_nerfstudio.gears.config import GearUpdateConfig
 from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
 from gear_nerfstudio.pipeline import GearPipelineConfig
 from gear_nerfstudio.schedulers import FloatCosineDecaySchedulerConfig
+from gear_nerfstudio.trainer_config import GearTrainerConfig
 
 LEARNING_RATE = 0.02
 """Initial learning rate for all parameters (Sec 5.1)."""
@@ -38,7 +38,7 @@ def schedule_options(iterations: int) -> List[str]:
 
 def trainer_config(
     method_name: str, model: GearNeRFModelConfig, num_rays_per_batch: int, max_num_iterations: int, warmup: int
-) -> TrainerConfig:
+) -> GearTrainerConfig:
     """A trainer with Adam (cosine decay after a warmup, as K-Planes) for every parameter group, and gear
     updates with epochs of 1/20 of ``max_num_iterations``.
 
@@ -52,7 +52,7 @@ def trainer_config(
             "scheduler": FloatCosineDecaySchedulerConfig(warm_up_end=warmup, max_steps=max_num_iterations),
         }
 
-    return TrainerConfig(
+    return GearTrainerConfig(
         method_name=method_name,
         steps_per_eval_batch=500,
         steps_per_eval_image=500,

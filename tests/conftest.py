@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -45,6 +46,11 @@ def scene_dirs(synthetic_root) -> dict:
 @pytest.fixture()
 def cache_dir(tmp_path) -> Path:
     return tmp_path / "frame-cache"
+
+
+IMPORT_WARNING = re.compile(r"Warning: |warnings\.warn\(|^\s+@custom_(fwd|bwd)|^\s*$")
+"""Lines of the deprecation warnings that nerfstudio's own modules print when a command imports them, before any
+plugin code runs (``gear_nerfstudio.dependency_warnings``)."""
 
 
 def command(*args: str, cwd: Path) -> subprocess.CompletedProcess:

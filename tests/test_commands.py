@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from PIL import Image
 
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
-from tests.conftest import ns
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from tests.conftest import IMPORT_WARNING, command, ns
 
 
 @pytest.fixture(scope="module")
@@ -35,43 +38,113 @@ def test_eval_reports_psnr_and_ssim_on_the_held_out_camera(trained):
     assert results["num_rays_per_sec"] > 0
 
 
-def test_render_camera_path_with_times(trained):
-    """A camera path from the viewer's format with render_time per keyframe renders every frame."""
-    root, scene, _, resumed = trained
-    cameras = Neural3DVideoDataParserConfig(data=scene, cache_dir=root / "cache").setup()
-    held_out = cameras.get_dataparser_outputs("test").cameras
-    c2w = np.eye(4)
-    c2w[:3] = held_out.camera_to_worlds[0].numpy()
-    height, width = int(held_out.height[0]), int(held_out.width[0])
-    fov = math.degrees(2 * math.atan(height / 2 / float(held_out.fy[0])))
-    keyframe = {"camera_to_world": c2w.ravel().tolist(), "fov": fov, "aspect": width / height}
-    path = {
-        "render_height": height,
-        "render_width": width,
-        "camera_type": "perspective",
-        "seconds": 2,
-        "camera_path": [{**keyframe, "render_time": 0.0}, {**keyframe, "render_time": 1.0}],
-    }
-    (root / "path.json").write_text(json.dumps(path))
-    frames = root / "frames"
-    ns(
-        "ns-render", "camera-path", "--load-config", str(resumed / "config.yml"),
-        "--camera-path-filename", str(root / "path.json"), "--output-path", str(frames), "--output-format", "images",
-        cwd=root,
-    )
-    images = sorted(frames.glob("*.jpg")) + sorted(frames.glob("*.png"))
-    assert len(images) == 2
-    assert all(Image.open(p).size == (width, height) for p in images)
+def edited_config(config_path: Path, target: Path, edit) -> Path:
+    """A copy of a run's config.yml (same checkpoints) with `edit` applied to the loaded config."""
+    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    edit(config)
+    target.write_text(yaml.dump(config))
+    return target
 
 
-def test_render_spiral_video(trained):
+def test_eval_of_a_single_held_out_image_writes_no_nan(trained):
+    """With one held-out image (a one-frame window of the same run) ns-eval leaves the spread out instead of NaN."""
     root, _, _, resumed = trained
-    video = root / "spiral.mp4"
-    ns(
-        "ns-render", "spiral", "--load-config", str(resumed / "config.yml"), "--output-path", str(video),
-        "--seconds", "1", "--frame-rate", "4", "--radius", "0.05", cwd=root,
-    )
-    import av
 
-    with av.open(str(video)) as container:
-        assert sum(1 for _ in container.decode(video=0)) == 4
+    def one_frame(config):
+        config.pipeline.model.num_frames = 3
+        config.pipeline.datamanager.dataparser.frame_count = 1
+
+    config = edited_config(resumed / "config.yml", root / "one-frame.yml", one_frame)
+    out = root / "one-frame.json"
+    ns("ns-eval", "--load-config", str(config), "--output-path", str(out), cwd=root)
+    results = json.loads(out.read_text())["results"]
+    assert math.isfinite(results["psnr"]) and not any(key.endswith("_std") for key in results), results
+    assert "NaN" not in out.read_text()
+
+
+def test_eval_with_missing_data_stops_in_one_line(trained):
+    root, _, _, resumed = trained
+
+    def moved(config):
+        config.pipeline.datamanager.dataparser.data = root / "moved-away"
+
+    config = edited_config(resumed / "config.yml", root / "moved.yml", moved)
+    result = command("ns-eval", "--load-config", str(config), "--output-path", str(root / "moved.json"), cwd=root)
+    assert result.returncode == 1
+    errors = [line for line in result.stderr.splitlines() if not IMPORT_WARNING.search(line)]
+    assert errors == [f"error: {root / 'moved-away'}: the scene folder does not exist"], result.stderr
+    assert not (root / "moved.json").exists()
+
+
+@pytest.fixture(scope="module")
+def moving_run(tmp_path_factory):
+    """gear-nerf-small trained for 200 iterations (gear updates at steps 30, 60, 90) on a 32x24, 4-frame N3D scene:
+    enough for its renders to show the spheres moving. (root, scene, config.yml)"""
+    root = tmp_path_factory.mktemp("moving")
+    scene = write_synthetic_scene(root / "scene", SyntheticSpec(dataset="n3d", width=32, height=24, frames=4, cameras=5))
+    ns(
+        "ns-train", "gear-nerf-small", "--output-dir", str(root / "runs"), "--timestamp", "run",
+        "--max-num-iterations", "200", "--pipeline.gear-updates.iterations-per-epoch", "10",
+        "--machine.device-type", "cpu", "--vis", "tensorboard", "--steps-per-eval-all-images", "100000",
+        "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache"), cwd=root,
+    )
+    return root, scene, root / "runs" / "scene" / "gear-nerf-small" / "run" / "config.yml"
+
+
+def rendered_frames(folder: Path) -> np.ndarray:
+    return np.stack([np.asarray(Image.open(p), dtype=np.float32) / 255 for p in sorted(folder.glob("*.jpg"))])
+
+
+def test_time_sweep_path_renders_the_video_from_a_fixed_view(moving_run):
+    """ns-gear-path time-sweep writes the held-out camera at each frame's time; ns-render camera-path renders it, and
+    the frames change where the spheres move (ground truth) and hardly elsewhere."""
+    root, scene, config = moving_run
+    path = root / "sweep.json"
+    ns("ns-gear-path", "time-sweep", "--load-config", str(config), "--output-path", str(path), cwd=root)
+    frames = json.loads(path.read_text())["camera_path"]
+    held_out = Neural3DVideoDataParserConfig(data=scene, cache_dir=root / "cache").setup()
+    pose = held_out.get_dataparser_outputs("test").cameras.camera_to_worlds[0].numpy()
+    assert [frame["render_time"] for frame in frames] == pytest.approx([0, 1 / 3, 2 / 3, 1])
+    for frame in frames:
+        np.testing.assert_allclose(np.reshape(frame["camera_to_world"], (4, 4))[:3], pose, atol=1e-6)
+
+    ns(
+        "ns-render", "camera-path", "--load-config", str(config), "--camera-path-filename", str(path),
+        "--output-path", str(root / "sweep"), "--output-format", "images", cwd=root,
+    )
+    images = rendered_frames(root / "sweep")
+    assert images.shape == (4, 24, 32, 3)
+    motion = np.load(scene / "ground_truth" / "cam00.npz")["motion"]
+    moving = (motion[0] > 0) | (motion[-1] > 0)
+    change = np.abs(images[-1] - images[0]).mean(axis=-1)
+    assert change[moving].mean() > 3 * change[~moving].mean(), (change[moving].mean(), change[~moving].mean())
+
+
+def test_spiral_starts_upright_at_its_source_camera(moving_run):
+    """ns-render spiral's first frame (time 0, a small step from the held-out camera) looks like the held-out camera's
+    render at time 0, not like it turned upside down (nerfstudio's spiral assumes the camera looks along -y)."""
+    root, _, config = moving_run
+    path = root / "start.json"
+    ns("ns-gear-path", "time-sweep", "--load-config", str(config), "--output-path", str(path), "--end-time", "0",
+       "--frames", "2", cwd=root)
+    ns(
+        "ns-render", "camera-path", "--load-config", str(config), "--camera-path-filename", str(path),
+        "--output-path", str(root / "start"), "--output-format", "images", cwd=root,
+    )
+    ns(
+        "ns-render", "spiral", "--load-config", str(config), "--output-path", str(root / "spiral"),
+        "--output-format", "images", "--seconds", "1", "--frame-rate", "4", "--radius", "0.01", cwd=root,
+    )
+    source, spiral = rendered_frames(root / "start")[0], rendered_frames(root / "spiral")[0]
+    upright = np.abs(spiral - source).mean()
+    assert upright < 0.5 * np.abs(spiral - source[::-1, ::-1]).mean(), upright
+
+
+def test_interpolate_warns_that_it_renders_time_zero(moving_run):
+    """ns-render interpolate drops the cameras' times: the model says so and names the command that keeps them."""
+    root, _, config = moving_run
+    result = ns(
+        "ns-render", "interpolate", "--load-config", str(config), "--output-path", str(root / "interpolated"),
+        "--output-format", "images", "--frame-rate", "2", "--interpolation-steps", "1", cwd=root,
+    )
+    assert "without a time is rendered at time 0" in result.stdout + result.stderr

@@ -13,15 +13,28 @@ import pytest
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from PIL import Image
+from scipy import ndimage
 
+from gear_nerfstudio.tracking import cli, propagation
 from gear_nerfstudio.tracking.cli import TrackCommand
 from tests.conftest import command as run
 from gear_nerfstudio.tracking.metrics import MaskScore, accuracy, iou, summarise
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding
-from gear_nerfstudio.tools.synthetic.scene import SyntheticScene
+from gear_nerfstudio.tools.synthetic.scene import RigCamera, SyntheticScene
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for
-from gear_nerfstudio.tracking.click import HIT_ACCUMULATION, TrackingError, click_point, project_prompt
+from gear_nerfstudio.tracking.click import (
+    HIT_ACCUMULATION,
+    IN_FRONT,
+    ClickHit,
+    TrackingError,
+    border_share,
+    check_click,
+    click_point,
+    in_front_share,
+    project_prompt,
+    view_share,
+)
 from gear_nerfstudio.tracking.propagation import (
     centred_box,
     locate_object,
@@ -100,6 +113,59 @@ def write_path(path: Path, poses, height: int, width: int, fov: float, times=Non
     return path
 
 
+def warning_lines(stderr: str):
+    """The command's warning lines, without their prefix."""
+    prefix = "ns-gear-track: warning: "
+    return [line[len(prefix) :] for line in stderr.splitlines() if line.startswith(prefix)]
+
+
+def deepest_pixel(mask: np.ndarray):
+    """Centre (x, y) of the mask's pixel furthest from its edge and from the image's border."""
+    distance = ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
+    row, col = np.unravel_index(int(np.argmax(distance)), mask.shape)
+    return col + 0.5, row + 0.5
+
+
+class PerfectRender:
+    """What a perfectly trained model would render, in place of `render_embedding` and `view_depth`: the
+    synthetic scene itself, seen from any camera of the model's world frame, with the SAM backend's encoder
+    features of that image and its true depth."""
+
+    def __init__(self, scene: Path, pipeline):
+        outputs = pipeline.datamanager.train_dataparser_outputs
+        transform = outputs.dataparser_transform.double().numpy()
+        self.rotation, self.shift, self.scale = transform[:, :3], transform[:, 3], float(outputs.dataparser_scale)
+        spec = json.loads((scene / "ground_truth" / "scene.json").read_text())["spec"]
+        self.frames, self.scene = spec["frames"], SyntheticScene(motion=spec["motion"])
+
+    def rig_camera(self, camera: Cameras) -> RigCamera:
+        """The scene's own camera (OpenCV axes, world-to-camera) of a camera in the model's world frame."""
+        c2w = camera.camera_to_worlds.reshape(3, 4).double().numpy()
+        rotation = self.rotation.T @ c2w[:, :3]  # OpenGL camera-to-world in the scene's world
+        centre = self.rotation.T @ (c2w[:, 3] / self.scale - self.shift)
+
+        def value(tensor) -> float:
+            return float(tensor.reshape(-1)[0])
+
+        return RigCamera(
+            name="view", rotation=np.stack([rotation[:, 0], -rotation[:, 1], -rotation[:, 2]]), centre=centre,
+            fx=value(camera.fx), fy=value(camera.fy), cx=value(camera.cx), cy=value(camera.cy),
+            width=int(value(camera.width)), height=int(value(camera.height)),
+        )
+
+    def render(self, camera: Cameras, time: float):
+        return self.scene.render(self.rig_camera(camera), round(time * (self.frames - 1)))
+
+    def embedding(self, model, camera: Cameras, time: float, backend) -> Embedding:
+        return backend.encode(self.render(camera, time).rgb)
+
+    def depth(self, model, camera: Cameras, time: float, pixels: torch.Tensor) -> np.ndarray:
+        depth = self.render(camera, time).depth
+        rows = np.clip(pixels[..., 1].numpy().astype(int), 0, depth.shape[0] - 1)
+        cols = np.clip(pixels[..., 0].numpy().astype(int), 0, depth.shape[1] - 1)
+        return depth[rows, cols]
+
+
 def assert_failed_cleanly(result: subprocess.CompletedProcess, parent: Path, *phrases: str) -> None:
     assert result.returncode == 2, result.stderr[-3000:]
     assert "Traceback" not in result.stderr
@@ -149,11 +215,94 @@ def test_one_click_tracks_to_the_held_out_view_at_every_time(trained):
     assert metrics["t-mIoU"] == pytest.approx((ious[0.0] + ious[1.0]) / 2)
     assert metrics["t-accuracy"] == pytest.approx((accs[0.0] + accs[1.0]) / 2)
     assert "mIoU" in result.stdout
+    for record in summary["masks"]:
+        assert record["share"] == pytest.approx(record["area"] / (18 * 24))
+    assert summary["masks_covering_most_of_view"] == sum(record["share"] > 0.5 for record in summary["masks"])
+    assert warning_lines(result.stderr) == summary["warnings"]  # one line each, on stderr and in tracking.json
+    assert {"mask_share", "mask_border_share", "mask_in_front_share", "background"} <= set(summary["click"])
+    assert summary["click"]["prompts"][0]["accumulation"] >= FAINT
 
     import av
 
     with av.open(str(out / "overlay" / "cam00.mp4")) as container:
         assert sum(1 for _ in container.decode(video=0)) == 3
+
+
+def test_background_click_is_warned_on_stderr_and_in_tracking_json(trained, tmp_path):
+    """A click on the wall, as far from every object as the image allows: the command says that the click
+    seems to have hit the background, on one line, and records it in tracking.json."""
+    root, scene, config = trained
+    x, y = deepest_pixel(np.load(scene / "ground_truth" / f"{CLICK_CAMERA}.npz")["object_ids"][CLICK_FRAME] == 0)
+    out = tmp_path / "wall"
+    result = run(
+        "ns-gear-track", "--load-config", str(config), "--output-dir", str(out), "--click-camera", CLICK_CAMERA,
+        "--click-time", "0.5", "--positive", str(x), str(y), "--min-accumulation", str(FAINT), "--times", "0.5",
+        "--no-video", cwd=root,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((out / "tracking.json").read_text())
+    warnings = warning_lines(result.stderr)
+    assert warnings == summary["warnings"]
+    background = [w for w in warnings if w.startswith("the click seems to have hit the background: ")]
+    assert len(background) == 1, warnings
+    assert "the scene's ground truth shows no object at the clicked pixel" in background[0]
+    assert summary["click"]["background"] is True and summary["ground_truth_object"] == 0
+    large = [w for w in warnings if "tracked masks cover more than half of their view" in w]
+    assert len(large) == (summary["masks_covering_most_of_view"] > 0)
+
+
+@pytest.fixture()
+def perfect_model(trained, loaded, monkeypatch):
+    """`ns-gear-track`'s own code on the loaded tiny run, with the renders of a perfectly trained model
+    (`PerfectRender`): the 20-iteration run renders the same SAM feature everywhere, so there every mask is
+    the whole image."""
+    config, pipeline = loaded
+    perfect = PerfectRender(trained[1], pipeline)
+    import nerfstudio.utils.eval_utils as eval_utils
+
+    monkeypatch.setattr(eval_utils, "eval_setup", lambda *args, **kwargs: (config, pipeline, Path("ckpt"), 0))
+    monkeypatch.setattr(cli, "render_embedding", perfect.embedding)
+    monkeypatch.setattr(cli, "view_depth", perfect.depth)
+    monkeypatch.setattr(propagation, "render_embedding", perfect.embedding)
+    return perfect
+
+
+@pytest.mark.parametrize("target", ["static", "slow", "fast", "wall", "floor"])
+def test_sphere_clicks_are_not_warned_and_wall_and_floor_clicks_are(
+    trained, loaded, perfect_model, target, tmp_path, capsys
+):
+    """On what a perfect model renders (64 x 48, cam01's pose, time 0.5), a click deep inside any of the three
+    spheres gives no warning; a click on the wall or the floor says that it seems to have hit the background,
+    because its mask is not in front of what surrounds it."""
+    camera = dataset_camera(loaded[1], CLICK_CAMERA)
+    fov = math.degrees(2 * math.atan(float(camera.height) / 2 / float(camera.fy)))
+    path = write_path(tmp_path / "view.json", [camera.camera_to_worlds.reshape(3, 4)], 48, 64, fov, times=[0.5])
+    ids = perfect_model.render(cli.load_camera_path(path), 0.5).object_ids
+    pixel = {
+        "static": deepest_pixel(ids == 1),
+        "slow": deepest_pixel(ids == 2),
+        "fast": deepest_pixel(ids == FAST_SPHERE),
+        "wall": deepest_pixel(ids[:24] == 0),  # the upper half of the view is wall
+        "floor": (32.5, 46.5),  # the bottom rows are floor
+    }[target]
+    assert (ids[int(pixel[1]), int(pixel[0])] == 0) == (target in ("wall", "floor"))
+    out = tmp_path / "out"
+    TrackCommand(
+        trained[2], out, click_camera_path=path, positive=[pixel], min_accumulation=FAINT, video=False, times=[0.5]
+    ).main()
+    summary = json.loads((out / "tracking.json").read_text())
+    warnings = warning_lines(capsys.readouterr().err)
+    assert warnings == summary["warnings"]
+    front = summary["click"]["mask_in_front_share"]
+    if target in ("wall", "floor"):
+        assert summary["click"]["background"] is True and front < IN_FRONT
+        assert warnings == [
+            f"the click seems to have hit the background: the mask at the clicked view view.json#0 (time 0.5) is in "
+            f"front of its surroundings along {100 * front:.0f}% of its edge (an object's along most of it)"
+        ]
+    else:
+        assert summary["click"]["background"] is False and front > IN_FRONT
+        assert warnings == [] and summary["masks_covering_most_of_view"] == 0
 
 
 def test_time_outside_0_1_is_refused_before_loading(trained, tmp_path):
@@ -220,6 +369,49 @@ def test_point_behind_or_outside_a_target_view_is_reported_per_view(trained, loa
 
 
 # --- core functions ---------------------------------------------------------------------------------
+
+
+def test_in_front_share_tells_an_object_from_a_piece_of_wall_or_floor():
+    rows, cols = np.mgrid[0:24, 0:32]
+    floor = 1.0 / (0.05 + 0.02 * rows)  # a plane seen at a grazing angle: inverse depth linear in the row
+    piece = (rows >= 8) & (rows < 16) & (cols >= 10) & (cols < 20)
+    assert in_front_share(piece, floor) == 0.0  # a piece of a plane goes on into its surroundings
+    box = np.where(piece, 0.5 * floor, floor)  # an object in front of it
+    assert in_front_share(piece, box) == 1.0
+    # Masks a cell or two too large still see the jump, except where their corners stick out past the object's.
+    assert in_front_share(ndimage.binary_dilation(piece, iterations=1), box) > 0.8
+    assert in_front_share(ndimage.binary_dilation(piece, iterations=2), box) > IN_FRONT
+    assert in_front_share(ndimage.binary_erosion(piece, iterations=2), box) == 1.0  # or too small
+    beside = (rows >= 8) & (rows < 16) & (cols >= 20) & (cols < 26)  # the plane next to the object
+    assert in_front_share(beside, box) < 0.05
+    assert in_front_share(np.zeros_like(piece), box) is None and in_front_share(np.ones_like(piece), box) is None
+
+
+def test_check_click_says_when_a_mask_covers_most_of_the_view_or_a_ray_ends_at_the_far_bound():
+    mask = np.zeros((20, 30), dtype=bool)
+    mask[5:15, 10:18] = True
+    depth = np.where(mask, 2.0, 4.0)
+    near = ClickHit(point=torch.zeros(3), depth=2.0, near=1.0, far=5.0, accumulation=0.9)
+    numbers, warnings = check_click("cam01", 0.5, mask, mask, depth, [(12.0, 8.0)], [1], [near])
+    assert warnings == [] and numbers["background"] is False
+    assert numbers["mask_share"] == view_share(mask) == pytest.approx(80 / 600)
+    assert numbers["mask_in_front_share"] == 1.0
+
+    large = np.ones_like(mask)
+    large[:, 25:] = False  # 83 % of the image, but not its right-hand side
+    assert border_share(large) == pytest.approx((2 * 25 + 18) / (2 * 30 + 2 * 18))
+    _, warnings = check_click("cam01", 0.5, large, large, depth, [(12.0, 8.0)], [1], [near])
+    assert warnings[0].startswith("the mask at the clicked view cam01 (time 0.5) covers 83% of the image (more than")
+    assert "touches 71% of the image border" in warnings[1]
+
+    far = ClickHit(point=torch.zeros(3), depth=4.9, near=1.0, far=5.0, accumulation=0.9)
+    _, warnings = check_click("cam01", 0.5, mask, mask, depth, [(12.0, 8.0), (3.0, 3.0)], [1, 0], [near, far])
+    assert warnings == []  # a negative click may end anywhere
+    _, warnings = check_click("cam01", 0.5, mask, mask, depth, [(12.0, 8.0)], [1], [far])
+    assert warnings == [
+        "the click seems to have hit the background: the ray of the click at (x=12, y=8) ends at its far bound "
+        "(depth 4.9, 98% of the way from near 1 to far 5)"
+    ]
 
 
 def test_click_point_lies_on_the_clicked_ray_and_projects_back(trained, loaded):

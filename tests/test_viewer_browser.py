@@ -1,13 +1,15 @@
 """Tracking in the viewer (Sec 4.5) on a model trained with the real `ns-train` on a tiny synthetic N3D scene
 with a fast sphere: the "tracked_mask" output of a selected object follows the viewer's camera and time;
-the real `ns-viewer` in a real headless Chromium renders the scene, its time slider shows the motion, and
-a click in the page reaches the model's tracking."""
+the real `ns-viewer` in a real headless Chromium, at its default resolution, shows the scene at its first
+view, its time slider shows the motion, and a click in the page selects the object under it within a minute
+on a CPU."""
 
 from __future__ import annotations
 
 import io
 import json
 import math
+import re
 import shutil
 import socket
 import subprocess
@@ -26,8 +28,8 @@ from scipy import ndimage
 from gear_nerfstudio.tools.synthetic.scene import RigCamera, SyntheticScene, scene_objects
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from gear_nerfstudio.tracking.click import project_prompt
-from gear_nerfstudio.tracking.propagation import render_embedding
-from gear_nerfstudio.tracking.viewer import Selection
+from gear_nerfstudio.tracking.propagation import render_embedding, track_view
+from gear_nerfstudio.tracking.viewer import OUTPUT, Selection, highlight
 from tests.conftest import BIN, ns
 
 STATIC_SPHERE, FAST_SPHERE = 1, 3
@@ -101,13 +103,18 @@ def surface_point(pipeline, scene: Path, object_id: int, frame: int, facing: str
     return outputs.dataparser_scale * (transform[:, :3] @ point + transform[:, 3])
 
 
-def viewer_render(model, camera):
-    """``model.get_outputs_for_camera`` as the viewer calls it: in one of its render threads."""
+def viewer_render(model, camera, shown: str = OUTPUT):
+    """``model.get_outputs_for_camera`` as the viewer calls it: in one of its render threads, with the output
+    `shown` picked in the viewer's control panel."""
+    from types import SimpleNamespace
+
     from nerfstudio.viewer.render_state_machine import RenderStateMachine
 
     class RenderThread(RenderStateMachine):
         def __init__(self) -> None:
             threading.Thread.__init__(self)
+            panel = SimpleNamespace(output_render=shown, split=False, split_output_render=shown)
+            self.viewer = SimpleNamespace(control_panel=panel)
             self.outputs = None
 
         def run(self) -> None:
@@ -134,7 +141,8 @@ def viewer_camera(pipeline, time_: float, width: int = 64, height: int = 48, x_s
 
 def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained, loaded):
     """The "tracked_mask" output of a viewer render highlights the selected object, at the clicked time and
-    after the time slider moved; renders that are not the viewer's (training, evaluation) never get it."""
+    after the time slider moved; renders that are not the viewer's (training, evaluation) never get it, and
+    while the viewer shows another output it is the colour image (no tracking work)."""
     from nerfstudio.viewer.viewer_elements import ViewerClick
 
     _, scene, _ = trained
@@ -152,22 +160,31 @@ def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained,
     assert tracking.selection is None and "hits nothing" in tracking.status.value
     assert "tracked_mask" not in viewer_render(model, viewer_camera(loaded, 0.0))
 
-    # The static sphere selected at time 0 (as a click on it would store it), seen at times 0 and 1.
+    # The static sphere selected at time 0 (as a click on it would store it), seen at times 0 and 1: at the
+    # clicked time the mask is the object's; at every time the viewer shows exactly the mask that tracking
+    # (ns-gear-track's propagation) gives for the viewer's camera and time.
     tracking.selection = Selection(point=surface_point(loaded, scene, STATIC_SPHERE, 0, "cam00"), time=0.0)
     for frame in (0, SPEC.frames - 1):
-        camera = viewer_camera(loaded, frame / (SPEC.frames - 1))
+        time = frame / (SPEC.frames - 1)
+        camera = viewer_camera(loaded, time)
         outputs = viewer_render(model, camera)
-        mask = highlighted(outputs)
-        truth = ground_truth_view(scene, "cam00", frame, width, height, fov).object_ids == STATIC_SPHERE
         x, y = project_prompt(camera, tracking.selection.point)
-        near_prompt = np.zeros_like(mask)
-        near_prompt[max(int(y) - 2, 0) : int(y) + 3, max(int(x) - 2, 0) : int(x) + 3] = True
-        assert truth[int(y), int(x)], "the selected point does not project onto the object"
-        assert (mask & near_prompt).any(), f"frame {frame}: the mask misses the selected point"
-        assert (mask & truth).sum() > 0.3 * truth.sum(), f"frame {frame}: the mask misses the object"
-        assert mask.sum() < 0.5 * mask.size, f"frame {frame}: the mask covers half the view"
-        assert torch.equal(outputs["tracked_mask"][~torch.from_numpy(mask)], outputs["rgb"][~torch.from_numpy(mask)])
+        tracked = track_view(model, loaded.sam_backend, camera, np.array([[x, y]]), np.array([1]), 0.0, [time],
+                             SPEC.frames)
+        expected = next(m.mask for m in tracked if m.time == time)
+        assert expected.any() and torch.equal(outputs["tracked_mask"], highlight(outputs["rgb"], expected)), frame
         assert "tracked_mask" not in model.get_outputs_for_camera(camera)  # not a viewer render
+        if frame == 0:
+            mask = highlighted(outputs)
+            truth = ground_truth_view(scene, "cam00", frame, width, height, fov).object_ids == STATIC_SPHERE
+            near_prompt = np.zeros_like(mask)
+            near_prompt[max(int(y) - 2, 0) : int(y) + 3, max(int(x) - 2, 0) : int(x) + 3] = True
+            assert truth[int(y), int(x)], "the selected point does not project onto the object"
+            assert (mask & near_prompt).any(), "the mask misses the selected point"
+            assert (mask & truth).sum() > 0.3 * truth.sum(), "the mask misses the object"
+            assert mask.sum() < 0.5 * mask.size, "the mask covers half the view"
+    shows_rgb = viewer_render(model, camera, shown="rgb")
+    assert shows_rgb["tracked_mask"] is shows_rgb["rgb"]
     tracking.selection = None
 
 
@@ -281,6 +298,13 @@ def browser(tmp_path):
         service.stop()
 
 
+def block_means(shot: np.ndarray, box, size: int = 32) -> np.ndarray:
+    """Mean colour of each size x size block of a screenshot's box: blind to the render's resolution."""
+    x0, y0, x1, y1 = box
+    view = shot[y0 : y0 + (y1 - y0) // size * size, x0 : x0 + (x1 - x0) // size * size]
+    return view.reshape(view.shape[0] // size, size, view.shape[1] // size, size, 3).mean(axis=(1, 3))
+
+
 def screenshot(driver) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(driver.get_screenshot_as_png())).convert("RGB")).astype(np.float32)
 
@@ -321,6 +345,8 @@ def settled_view(driver, box, timeout: float, differs_from=None) -> np.ndarray:
 
 
 def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, browser, viewer, tmp_path):
+    """At the viewer's defaults ('Max res' 512: a full render takes minutes on a CPU): the first view shows the
+    scene, the time slider shows the motion, and a click selects the object under it."""
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
@@ -330,9 +356,7 @@ def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, bro
     driver.get(viewer)
     wait_for(lambda: driver.find_elements(By.XPATH, "//*[normalize-space()='Connected']"), 60, "the websocket")
     wait_for(lambda: driver.find_elements(By.XPATH, "//button[normalize-space()='Hide Train Cams']"), 30, "the GUI")
-    # The training cameras' images would cover the render at the start pose (the first training camera).
-    driver.find_element(By.XPATH, "//button[normalize-space()='Hide Train Cams']").click()
-    press(driver, by_label(driver, "Max res", "*[@role='slider']"), Keys.HOME)  # 64 px: quick CPU renders
+    assert by_label(driver, "Max res", "input").get_attribute("value") == "512"  # nerfstudio's default
 
     # The 3D view's canvas: the narrowest large one (the GUI panel sits beside it).
     canvas_element = min(
@@ -344,14 +368,21 @@ def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, bro
     first = settled_view(driver, box, 120)
     Image.fromarray(first.astype(np.uint8)).save(tmp_path / "time_0.png")
 
+    # The first view shows the scene: the viewer opens at the held-out camera, so no training camera's
+    # frustum (drawn with its image) covers the render, and hiding them changes the view by little (at the
+    # first training camera its frustum covers the middle: 13 grey levels on 32-px block means).
+    driver.find_element(By.XPATH, "//button[normalize-space()='Hide Train Cams']").click()
+    hidden = settled_view(driver, box, 60)
+    covered = np.abs(block_means(hidden, box) - block_means(first, box)).mean()
+    assert covered < 4.0, f"the training cameras' frusta cover the first view ({covered:.1f} grey levels)"
+
     press(driver, by_label(driver, "Time", "*[@role='slider']"), Keys.END)  # time 1.0, the last frame
-    last = settled_view(driver, box, 120, differs_from=first)
+    last = settled_view(driver, box, 120, differs_from=hidden)
     Image.fromarray(last.astype(np.uint8)).save(tmp_path / "time_1.png")
 
-    # Where the fast sphere moves (ground truth at the viewer's camera) the screenshots differ more than
-    # on the static background.
-    # The viewer starts at the first training image's camera: cam01 (cam00 is held out).
-    truth = [ground_truth_view(scene, "cam01", f, width, height, VIEWER_FOV).object_ids for f in (0, SPEC.frames - 1)]
+    # Where the fast sphere moves (ground truth at the viewer's camera, the held-out cam00) the screenshots
+    # differ more than on the static background.
+    truth = [ground_truth_view(scene, "cam00", f, width, height, VIEWER_FOV).object_ids for f in (0, SPEC.frames - 1)]
     region = np.zeros((first.shape[0], first.shape[1]), dtype=bool)
     x0, y0, x1, y1 = box
     region[y0:y1, x0:x1] = True
@@ -360,17 +391,40 @@ def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, bro
     still = np.zeros_like(region)
     still[top : top + height, left : left + width] = (truth[0] == truth[1]) & (truth[0] != FAST_SPHERE)
     still &= ~ndimage.binary_dilation(moving, iterations=25)
-    change = np.abs(last - first).mean(axis=-1)
+    change = np.abs(last - hidden).mean(axis=-1)
     moving_change, still_change = change[moving & region].mean(), change[still & region].mean()
     assert moving_change > 2.0 * still_change, (moving_change, still_change)
 
-    # "Select object", then a click on the static sphere: the click's ray reaches the model's tracking
-    # (Sec 4.5), which reports the 3D point it selected or why the ray hit nothing.
+    # "Select object", then a click on the static sphere, while the viewer renders at 'Max res' 512: the
+    # click's ray reaches the model's tracking (Sec 4.5), which selects the sphere: its mask in the clicked
+    # view covers about as much of the view as the sphere does.
+    status = by_label(driver, "Tracked", "input")
     driver.find_element(By.XPATH, "//button[normalize-space()='Select object (then click it)']").click()
+    wait_for(lambda: "click the object" in (status.get_attribute("value") or ""), 10, "the button to arm a click")
     rows, cols = np.nonzero(truth[1] == STATIC_SPHERE)
     x, y = float(cols.mean()), float(rows.mean())
-    time.sleep(1.0)  # the pointer callback is registered through the websocket
-    ActionChains(driver).move_to_element_with_offset(canvas_element, int(x - width / 2), int(y - height / 2)).click().perform()
-    status = by_label(driver, "Tracked", "input")
-    wait_for(lambda: (status.get_attribute("value") or "") != "nothing selected", 60, "the click to reach the model")
-    assert "point (" in status.get_attribute("value") or "hits nothing" in status.get_attribute("value")
+    offset = int(x - width / 2), int(y - height / 2)
+    ActionChains(driver).move_to_element_with_offset(canvas_element, *offset).click().perform()
+    clicked = time.monotonic()
+    wait_for(lambda: re.match(r"point \(|nothing selected", status.get_attribute("value") or ""), 60, "a selection")
+    value = status.get_attribute("value")
+    print(f"click to selection: {time.monotonic() - clicked:.1f} s: {value}")
+    share = re.search(r"its mask ([0-9.]+)% of the view", value)
+    assert share is not None, f"the click selected nothing: {value}"
+    truth_share = float(np.mean(truth[1] == STATIC_SPHERE))
+    assert 0.3 * truth_share < float(share.group(1)) / 100 < 3.0 * truth_share, (value, truth_share)
+
+    # The output 'tracked_mask' highlights the selected sphere: the pixels turned greener cover it and lie
+    # near it (the low-resolution render spreads them by a render pixel or so).
+    before = screenshot(driver)
+    by_label(driver, "Output type", "input").click()
+    option = f"//*[@role='option' and normalize-space()='{OUTPUT}']"
+    wait_for(lambda: driver.find_elements(By.XPATH, option), 30, f"the output {OUTPUT} in the list")
+    driver.find_element(By.XPATH, option).click()
+    shown = settled_view(driver, box, 60, differs_from=before)
+    Image.fromarray(shown.astype(np.uint8)).save(tmp_path / "tracked_mask.png")
+    green = (shown - before)[top : top + height, left : left + width] @ np.array([-0.5, 1.0, -0.5])
+    greener, sphere = green > 20.0, truth[1] == STATIC_SPHERE
+    assert (greener & sphere).sum() > 0.5 * sphere.sum(), "the highlight misses the selected sphere"
+    near = ndimage.binary_dilation(sphere, iterations=30)
+    assert (greener & near).sum() > 0.6 * greener.sum(), "the highlight spreads beyond the selected sphere"

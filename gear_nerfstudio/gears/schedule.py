@@ -10,6 +10,7 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 from torch import nn
 
+from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.gears.config import GearUpdateConfig
 
 
@@ -41,8 +42,19 @@ def describe_plan(config: GearUpdateConfig, steps: List[int], cameras: Cameras, 
     )
 
 
-class NoGearUpdates(ValueError):
+class NoGearUpdates(InputError):
     """A training run with gear updates enabled would get none."""
+
+
+def no_updates_error(config: GearUpdateConfig, first_step: int, last_step: int) -> NoGearUpdates:
+    """The error for a run from ``first_step`` to ``last_step`` with no planned update, naming what fixes it."""
+    return NoGearUpdates(
+        f"Gear updates are on but none would run in steps {first_step}..{last_step}: they come every "
+        f"{update_interval(config)} iterations while L' = {config.epochs_after_updates:g} epochs of "
+        f"{config.iterations_per_epoch} iterations remain; raise --max-num-iterations, lower "
+        "--pipeline.gear-updates.iterations-per-epoch (or .epochs-between-updates / "
+        ".epochs-after-updates), or set --pipeline.gear-updates.enabled False."
+    )
 
 
 class GearUpdateState(nn.Module):

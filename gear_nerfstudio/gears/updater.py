@@ -50,8 +50,8 @@ from gear_nerfstudio.gears.loss_maps import (
 )
 from gear_nerfstudio.gears.schedule import (
     GearUpdateState,
-    NoGearUpdates,
     describe_plan,
+    no_updates_error,
     planned_updates,
     spread_views,
     update_interval,
@@ -142,13 +142,7 @@ class GearUpdater:
         elif self.planned:
             CONSOLE.log(describe_plan(config, self.planned, views.train_dataset.cameras, rays_per_batch))
         elif int(state.num_updates) == 0:
-            raise NoGearUpdates(
-                f"Gear updates are on but none would run in steps {first_step}..{last_step}: they come every "
-                f"{self.interval} iterations while L' = {config.epochs_after_updates:g} epochs of "
-                f"{config.iterations_per_epoch} iterations remain; raise --max-num-iterations, lower "
-                "--pipeline.gear-updates.iterations-per-epoch (or .epochs-between-updates / "
-                ".epochs-after-updates), or set --pipeline.gear-updates.enabled False."
-            )
+            raise no_updates_error(config, first_step, last_step)
 
     def __call__(self, step: int) -> None:
         if bool(self.state.finished) or step == 0 or step % self.interval:

@@ -17,6 +17,7 @@ from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple
 
 import numpy as np
 import torch
+import tyro
 from jaxtyping import Float, Int
 from torch import Tensor
 from torch.nn import Parameter
@@ -50,6 +51,14 @@ class GearNeRFModelConfig(ModelConfig):
     """Gear-NeRF model config. Defaults are the paper's settings (Sec 5.1) where it states them."""
 
     _target: Type = field(default_factory=lambda: GearNeRFModel)
+    enable_collider: tyro.conf.Suppress[bool] = False
+    """Not used: the model clips rays to near/far (or the scene box) itself."""
+    collider_params: tyro.conf.Suppress[Optional[Dict[str, float]]] = None
+    """Not used: near_plane / far_plane below."""
+    loss_coefficients: tyro.conf.Suppress[Dict[str, float]] = field(default_factory=dict)
+    """Not used: each loss has its own multiplier below."""
+    prompt: tyro.conf.Suppress[Optional[str]] = None
+    """Not used (a text prompt for language-field methods)."""
 
     near_plane: Optional[float] = None
     """Near plane in scene units; None takes ``metadata["near"]`` from the dataparser."""
@@ -244,6 +253,7 @@ class GearNeRFModel(Model):
         self._lpips: Dict[str, Any] = {}
         self.render_hooks: List[Callable[[Cameras, Dict[str, Tensor]], Dict[str, Tensor]]] = []
         """Extra outputs of full-image renders (``get_outputs_for_camera``), such as the viewer's tracked mask."""
+        self.warned_no_time = False
 
     def gear_values(
         self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*bs 1"]]
@@ -338,7 +348,14 @@ class GearNeRFModel(Model):
 
     @torch.no_grad()
     def get_outputs_for_camera(self, camera: Cameras, obb_box: Optional[OrientedBox] = None) -> Dict[str, Tensor]:
-        """nerfstudio's full-image render, plus the outputs of the ``render_hooks``."""
+        """nerfstudio's full-image render, plus the outputs of the ``render_hooks``. A camera without a time is
+        rendered at time 0, with a warning (once) for a video: ``ns-render interpolate`` drops the times."""
+        if camera.times is None and self.num_frames > 1 and not self.warned_no_time:
+            CONSOLE.log(
+                "[yellow]Gear-NeRF: a camera without a time is rendered at time 0 (ns-render interpolate drops the "
+                "cameras' times); `ns-gear-path` writes camera paths with times for `ns-render camera-path`."
+            )
+            self.warned_no_time = True
         outputs = super().get_outputs_for_camera(camera, obb_box=obb_box)
         for hook in self.render_hooks:
             outputs.update(hook(camera, outputs))
@@ -447,7 +464,7 @@ class GearNeRFModel(Model):
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
         """PSNR, SSIM (and LPIPS when its weights are local) on a full image; rgb, depth, gear images."""
-        from torchmetrics.functional import structural_similarity_index_measure
+        from torchmetrics.functional.image import structural_similarity_index_measure
 
         image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
         rgb = outputs["rgb"]

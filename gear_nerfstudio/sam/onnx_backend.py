@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
+from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.sam.interface import Embedding, SamBackend
 
 IMAGE_SIZE = 1024  # SAM's input side
@@ -45,7 +46,7 @@ ENCODER_INPUT = (1, 3, IMAGE_SIZE, IMAGE_SIZE)
 ENCODER_OUTPUT = (1, EMBEDDING_DIM, GRID_SIZE, GRID_SIZE)
 
 
-class SamModelError(ValueError):
+class SamModelError(InputError):
     """A SAM model file is missing, unreadable or does not have the expected signature."""
 
 

@@ -2,7 +2,8 @@
 
 Generates a synthetic scene in the Neural 3D Video format, trains a gear-nerf preset on it with
 `ns-train` (CPU by default), evaluates the held-out camera with `ns-eval`, renders a spiral video
-sweeping time 0 -> 1 with `ns-render`, and prints where everything is.
+sweeping time 0 -> 1 with `ns-render`, writes a fixed-view time sweep with `ns-gear-path` and renders it with
+`ns-render camera-path`, and prints where everything is.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import List, Literal
 
 import tyro
 
+from gear_nerfstudio.dependency_warnings import pythonwarnings
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
@@ -58,6 +60,7 @@ class DemoCommand:
         config = runs / "demo" / self.method / "demo" / "config.yml"
         metrics = self.output / "metrics.json"
         video = self.output / "video.mp4"
+        sweep_path, sweep = self.output / "time_sweep.json", self.output / "time_sweep.mp4"
         _run(["ns-eval", "--load-config", str(config), "--output-path", str(metrics)])
         _run(
             [
@@ -65,20 +68,39 @@ class DemoCommand:
                 "--seconds", "3", "--frame-rate", "10", "--radius", "0.05",
             ]
         )
+        _run(
+            [
+                "ns-gear-path", "time-sweep", "--load-config", str(config), "--output-path", str(sweep_path),
+                "--frames", "30", "--fps", "10",
+            ]
+        )
+        _run(
+            [
+                "ns-render", "camera-path", "--load-config", str(config), "--camera-path-filename", str(sweep_path),
+                "--output-path", str(sweep),
+            ]
+        )
         results = json.loads(metrics.read_text())["results"]
         shown = ", ".join(f"{k} {v:.4g}" for k, v in results.items() if not k.endswith("_std"))
         print(f"[demo] held-out camera cam00: {shown}")
-        print(f"[demo] video:   {video}")
+        print(f"[demo] video:   {video} (a spiral around cam00 while time runs 0 -> 1)")
+        print(f"[demo] video:   {sweep} (cam00 held still while time runs 0 -> 1)")
         print(f"[demo] metrics: {metrics}")
         print(f"[demo] config:  {config}  (open with: ns-viewer --load-config {config})")
         print(f"[demo] done in {time.time() - started:.0f} s")
 
 
 def _run(command: List[str]) -> None:
-    """Run a command of this environment, with its bin folder (ns-*, ffmpeg) first on PATH."""
+    """Run a command of this environment, with its bin folder (ns-*, ffmpeg) first on PATH and without
+    nerfstudio's import-time deprecation warnings."""
     bin_dir = Path(sys.executable).parent
     print(f"[demo] $ {' '.join(command)}", flush=True)
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
+    warning_filters = [os.environ.get("PYTHONWARNINGS", ""), pythonwarnings()]
+    env = {
+        **os.environ,
+        "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
+        "PYTHONWARNINGS": ",".join(filter(None, warning_filters)),
+    }
     subprocess.run([str(bin_dir / command[0]), *command[1:]], check=True, env=env)
 
 

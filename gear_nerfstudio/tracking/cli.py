@@ -12,6 +12,12 @@ their 3D points, the prompt of every mask and, when the scene has synthetic grou
 `ground_truth/<camera>.npz`, IoU and accuracy per mask with mIoU / accuracy at the clicked time and
 t-mIoU / t-accuracy at the other times). Everything is checked before anything is written, and the
 folder appears only when complete.
+
+A click that works can still miss the object: the clicks are also segmented in the clicked view itself
+(with the depth rendered there), and one warning line each (on stderr, and in tracking.json's "warnings")
+says when that mask covers most of the view, when the click seems to have hit the background
+(`click.check_click`; the numbers behind both are in tracking.json's "click"), and how many tracked masks
+cover more than half of their view ("masks_covering_most_of_view"; "share" per mask). Tracking still runs.
 """
 
 from __future__ import annotations
@@ -30,11 +36,36 @@ import tyro
 from PIL import Image
 
 from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.sam.interface import cell_centres
 from gear_nerfstudio.tools.synthetic.ground_truth import GroundTruth
 from gear_nerfstudio.tools.video import write_video
 from gear_nerfstudio.tracking.metrics import score, summarise
-from gear_nerfstudio.tracking.click import HIT_ACCUMULATION, TrackingError, check_time, click_point, image_size, project_prompt
-from gear_nerfstudio.tracking.propagation import Propagation, frame_times, render_rgb, track_view
+from gear_nerfstudio.tracking.click import (
+    HIT_ACCUMULATION,
+    MOST_OF_VIEW,
+    ClickHit,
+    TrackingError,
+    check_click,
+    check_time,
+    image_size,
+    project_prompt,
+    trace_click,
+    view_depth,
+    view_share,
+)
+from gear_nerfstudio.tracking.propagation import (
+    Propagation,
+    frame_times,
+    mask_cells,
+    render_embedding,
+    render_rgb,
+    segment,
+    track_view,
+)
+
+
+BACKGROUND_ID = 0
+"""Object id of the static background (wall, floor, sky) in a synthetic scene's ground truth."""
 
 
 @dataclass
@@ -84,7 +115,11 @@ class TrackCommand:
 
         config, pipeline, checkpoint, step = eval_setup(self.load_config, test_mode="test")
         plan = Plan.make(self, config, pipeline)
+        for warning in plan.warnings:  # before the long part: the user may stop and click again
+            warn(warning)
         summary = plan.write(self, {"config": str(self.load_config), "checkpoint": str(checkpoint), "step": step})
+        for warning in summary["warnings"][len(plan.warnings) :]:
+            warn(warning)
         print(format_summary(summary, self.output_dir))
 
     def check_arguments(self) -> None:
@@ -152,7 +187,9 @@ class Plan:
     click_time: float
     pixels: np.ndarray  # (N, 2) clicked pixels
     labels: np.ndarray  # (N,)
-    points: List[Any]  # (3,) world points
+    hits: List[ClickHit]  # where each click ray meets a surface (its point, depth, bounds, accumulation)
+    click_check: Dict[str, Any]  # the clicks' mask in the clicked view: its shares (`click.check_click`)
+    warnings: List[str]  # signs that the click missed its object (`click.check_click`)
     views: Dict[str, Any]  # name -> Cameras
     view_pixels: Dict[str, np.ndarray]  # name -> (N, 2) projected prompts
     times: List[float]
@@ -200,13 +237,14 @@ class Plan:
 
         pixels = np.array([*command.positive, *command.negative], dtype=np.float64)
         labels = np.array([1] * len(command.positive) + [0] * len(command.negative), dtype=np.int64)
-        points = []
+        hits = []
         for (x, y), label in zip(pixels, labels):
             kind = "positive" if label else "negative"
             try:
-                points.append(click_point(model, click_camera, (x, y), click_time, command.min_accumulation))
+                hits.append(trace_click(model, click_camera, (x, y), click_time, command.min_accumulation))
             except (TrackingError, DatasetError) as err:
                 raise TrackingError(f"{kind} click on {click_name}: {err}") from err
+        points = [hit.point for hit in hits]
 
         problems, view_pixels = [], {}
         for name, camera in views.items():
@@ -227,9 +265,17 @@ class Plan:
             if ids is not None:
                 x, y = command.positive[0]
                 target_object = int(ids[int(y), int(x)])
+
+        backend = pipeline.sam_backend  # the clicks' own mask, and the depth on its grid (`click.check_click`)
+        mask = segment(backend, render_embedding(model, click_camera, click_time, backend), pixels, labels)
+        depth = view_depth(model, click_camera, click_time, cell_centres(image_size(click_camera), backend.grid_size))
+        click_check, warnings = check_click(
+            click_name, click_time, mask, mask_cells(mask, backend.grid_size), depth, pixels.tolist(),
+            labels.tolist(), hits, None if target_object is None else target_object == BACKGROUND_ID,
+        )
         return cls(
-            pipeline, click_name, click_time, pixels, labels, points, views, view_pixels, times,
-            ground_truth, target_object,
+            pipeline, click_name, click_time, pixels, labels, hits, click_check, warnings, views, view_pixels,
+            times, ground_truth, target_object,
         )
 
     def write(self, command: TrackCommand, header: Dict[str, Any]) -> Dict[str, Any]:
@@ -273,6 +319,7 @@ class Plan:
                 (folder / relative).parent.mkdir(parents=True, exist_ok=True)
                 Image.fromarray(item.mask.astype(np.uint8) * 255).save(folder / relative)
                 record = {"view": name, "time": item.time, "mask": str(relative), "area": int(item.mask.sum())}
+                record["share"] = view_share(item.mask)
                 record["prompt"] = item.prompt
                 truth = self._truth(name, item.time, image_size(camera))
                 if truth is not None:
@@ -286,6 +333,13 @@ class Plan:
                 (folder / "overlay").mkdir(exist_ok=True)
                 write_video(folder / "overlay" / f"{name}.mp4", [even(frame) for frame in frames], command.fps)
 
+        large = [f"{r['view']} t={r['time']:.2f}" for r in records if r["share"] > MOST_OF_VIEW]
+        warnings = list(self.warnings)
+        if large:
+            warnings.append(
+                f"{len(large)} of {len(records)} tracked masks cover more than half of their view "
+                f"({', '.join(large[:5])}{', ...' if len(large) > 5 else ''}): likely background, not the object"
+            )
         summary = {
             **header,
             "depth": "median termination depth: where the click ray's accumulated weight reaches half its total",
@@ -295,13 +349,23 @@ class Plan:
                 "camera": self.click_name,
                 "time": self.click_time,
                 "prompts": [
-                    {"pixel": pixel.tolist(), "label": int(label), "point": point.tolist()}
-                    for pixel, label, point in zip(self.pixels, self.labels, self.points)
+                    {
+                        "pixel": pixel.tolist(),
+                        "label": int(label),
+                        "point": hit.point.tolist(),
+                        "depth": hit.depth,
+                        "depth_share": hit.depth_share,
+                        "accumulation": hit.accumulation,
+                    }
+                    for pixel, label, hit in zip(self.pixels, self.labels, self.hits)
                 ],
+                **self.click_check,
             },
             "targets": list(self.views),
             "times": self.times,
             "masks": records,
+            "masks_covering_most_of_view": len(large),
+            "warnings": warnings,
             "ground_truth_object": self.target_object,
             "metrics": summarise(scores) if scores else None,
         }
@@ -318,6 +382,11 @@ class Plan:
             return None
         ids = self.ground_truth.object_ids(view, time, size)
         return None if ids is None else ids == self.target_object
+
+
+def warn(message: str) -> None:
+    """One warning line on stderr."""
+    print(f"ns-gear-track: warning: {message}", file=sys.stderr, flush=True)
 
 
 def overlay(rgb: np.ndarray, mask: np.ndarray, prompt: Dict[str, Any]) -> np.ndarray:

@@ -11,17 +11,47 @@ lies on the first surface the ray meets. A ray whose accumulation A stays below 
 
 Every failure a user can cause (time outside [0, 1], a pixel outside the image, a click on nothing, a point
 behind or outside a target view) raises `TrackingError` with a message that says which.
+
+A click can also succeed and still miss the object the user meant; `check_click` says so, from the mask that
+the clicks give in the clicked view, the depth of that view on SAM's grid (`view_depth`: every cell's ray
+traced as a click's is) and the click rays (`ClickHit`). Two warnings:
+- the mask covers most of the view: more than MOST_OF_VIEW = half of the image. Such a mask is larger than
+  everything else in the view together: what the view mostly shows (wall, floor, sky, or the whole frame
+  when the segmenter found no boundary), rarely the one object a user points at;
+- the click seems to have hit the background, when any of these holds:
+  - the mask is not in front of what surrounds it: less than IN_FRONT = a third of its edge is an
+    occluding edge (`in_front_share`: beyond the edge the view's depth is further, by more than EDGE_JUMP =
+    10 % in inverse depth, than the surface inside would be if it went on). An object is seen against what
+    lies behind it, so its silhouette is an occluding edge almost all round (except where it rests on
+    something or is itself partly hidden); a piece of wall or floor goes on into its surroundings, or lies
+    behind objects, so almost none of its edge is. 10 % is a jump that a continuous surface does not make
+    between neighbouring cells once its own slope is continued; a third, not a half, leaves room for masks
+    that leak into the background. On the demo scene's trained model (cam01, time 0.4, a click every 3
+    pixels) the masks that are a sphere keep 77-100 % of their edge occluding, pieces of wall and floor
+    at most 35 %;
+  - the mask touches more than MOST_OF_BORDER = half of the image border: the background surrounds the
+    objects in front of it, so it runs along the frame; an object cut by the frame reaches one or two sides;
+  - a positive click's median depth lies past FAR_BOUND = 95 % of its ray's [near, far] range: the ray
+    crossed the whole scene volume, it ends at the far end of the scene (sky, the far bound);
+  - on a synthetic scene with ground truth, the clicked pixel shows no object (a fact, not a guess).
+The first three depend on no scene, segmenter or camera model: they only use the mask, the view's depth,
+the ray's own bounds and the image's border. They are warnings: tracking still runs and writes everything.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Optional, Tuple
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence, Tuple
 
+import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.model_components.ray_samplers import UniformSampler
+from scipy import ndimage
 from torch import Tensor
+
+from gear_nerfstudio.errors import InputError
 
 from gear_nerfstudio.tracking.projection import project
 
@@ -32,11 +62,25 @@ HIT_ACCUMULATION = 0.5
 """Default accumulated weight a click ray needs to count as meeting a surface."""
 CLICK_SAMPLES = 256
 """Uniform samples along a click ray for its median termination depth."""
+DEPTH_CHUNK = 1024
+"""Rays traced at once by `view_depth`."""
 PROJECTABLE = (CameraType.PERSPECTIVE.value, CameraType.FISHEYE.value)
 """Camera types a point can be projected into."""
+MOST_OF_VIEW = 0.5
+"""A mask covering more than this share of its image covers most of the view (more than the rest of it)."""
+MOST_OF_BORDER = 0.5
+"""A clicked-view mask touching more than this share of the image's border pixels is likely the background."""
+FAR_BOUND = 0.95
+"""A click whose median depth lies past this share of its ray's [near, far] range ends at the far bound."""
+EDGE_JUMP = 0.1
+"""Relative inverse-depth step, beyond the surface's own continuation, that counts as an occluding edge."""
+EDGE_OFFSETS = (1, 2, 3)
+"""Cells from a mask's edge at which `in_front_share` compares the two sides."""
+IN_FRONT = 1.0 / 3.0
+"""A mask in front of its surroundings along less than this share of its edge is likely the background."""
 
 
-class TrackingError(ValueError):
+class TrackingError(InputError):
     """A click, camera or time that tracking cannot use; the message says which and why."""
 
 
@@ -72,6 +116,27 @@ def image_size(camera: Cameras) -> Tuple[int, int]:
     return int(camera.height.reshape(-1)[0]), int(camera.width.reshape(-1)[0])
 
 
+@dataclass
+class ClickHit:
+    """Where a click ray first meets a surface: the 3D point and the ray's own numbers."""
+
+    point: Tensor  # (3,) world point
+    depth: float  # median termination depth along the (unit) ray direction
+    near: float  # the ray's bounds after the model's collider
+    far: float
+    accumulation: float  # the ray's accumulated weight, in [0, 1]
+
+    @property
+    def depth_share(self) -> float:
+        """Where the depth lies between the ray's near (0) and far (1) bounds."""
+        return (self.depth - self.near) / max(self.far - self.near, 1e-12)
+
+    @property
+    def at_far_bound(self) -> bool:
+        """Whether the ray ends in the last part of its range (see FAR_BOUND): the far end of the scene."""
+        return self.depth_share > FAR_BOUND
+
+
 def click_point(
     model: "Model",
     camera: Cameras,
@@ -79,7 +144,19 @@ def click_point(
     time: float,
     min_accumulation: float = HIT_ACCUMULATION,
 ) -> Tensor:
-    """The 3D world point (3,) where the ray through `pixel` = (x, y) first meets a surface at `time`.
+    """The 3D world point (3,) where the ray through `pixel` = (x, y) first meets a surface at `time`
+    (`trace_click`'s point)."""
+    return trace_click(model, camera, pixel, time, min_accumulation).point
+
+
+def trace_click(
+    model: "Model",
+    camera: Cameras,
+    pixel: Tuple[float, float],
+    time: float,
+    min_accumulation: float = HIT_ACCUMULATION,
+) -> ClickHit:
+    """Where the ray through `pixel` = (x, y) first meets a surface at `time`.
 
     Sec 4.5: trace the ray and take its median termination depth (see the module docstring). Raises
     TrackingError for a time outside [0, 1], a pixel outside the image, or a ray whose accumulation
@@ -92,19 +169,43 @@ def click_point(
         raise TrackingError(f"click pixel (x={x:g}, y={y:g}) is outside the {width}x{height} image")
     camera = single_camera(camera, time).to(model.device)
     rays = model.collider(camera.generate_rays(camera_indices=0, coords=torch.tensor([[y, x]], device=model.device)))
-    samples = UniformSampler(num_samples=CLICK_SAMPLES, train_stratified=False)(rays)
-    positions = samples.frustums.get_positions()
-    with torch.no_grad():
-        weights = samples.get_weights(model.field.density_fn(positions, samples.times))[0, :, 0]
-    accumulation = float(weights.sum())
+    depths, accumulations = _terminations(model, rays)
+    accumulation = float(accumulations[0])
     if accumulation < min_accumulation:
         raise TrackingError(
             f"the click at pixel (x={x:g}, y={y:g}), time {time:g} hits nothing: the ray's accumulated "
             f"density is {accumulation:.3f} < {min_accumulation:g} (empty sky or outside the scene)"
         )
-    median = int(torch.searchsorted(torch.cumsum(weights, 0), torch.tensor([accumulation / 2], device=weights.device)))
-    depth = (samples.frustums.starts[0, median] + samples.frustums.ends[0, median]) / 2
-    return (rays.origins[0] + rays.directions[0] * depth).detach().cpu().float()
+    return ClickHit(
+        point=(rays.origins[0] + rays.directions[0] * depths[0]).detach().cpu().float(),
+        depth=float(depths[0]),
+        near=float(rays.nears.reshape(-1)[0]),
+        far=float(rays.fars.reshape(-1)[0]),
+        accumulation=accumulation,
+    )
+
+
+def _terminations(model: "Model", rays) -> Tuple[Tensor, Tensor]:
+    """Median termination depths (N,) and accumulations (N,) of N rays that went through the model's collider."""
+    samples = UniformSampler(num_samples=CLICK_SAMPLES, train_stratified=False)(rays)
+    with torch.no_grad():
+        weights = samples.get_weights(model.field.density_fn(samples.frustums.get_positions(), samples.times))[..., 0]
+    accumulations = weights.sum(dim=-1)
+    median = torch.searchsorted(torch.cumsum(weights, dim=-1), accumulations[:, None] / 2).clamp(max=CLICK_SAMPLES - 1)
+    middles = (samples.frustums.starts[..., 0] + samples.frustums.ends[..., 0]) / 2
+    return torch.gather(middles, 1, median)[:, 0], accumulations
+
+
+def view_depth(model: "Model", camera: Cameras, time: float, pixels: Tensor) -> np.ndarray:
+    """Median termination depths (...) of the rays through pixel coordinates (..., 2) = (x, y) of a single
+    camera at a time, traced as a click is (CLICK_SAMPLES uniform samples): the depth map `in_front_share`
+    reads. Unlike the model's own depth output, it is not rounded to the few samples a render uses."""
+    camera = single_camera(camera, check_time(time)).to(model.device)
+    depths = []
+    for chunk in pixels.reshape(-1, 2).split(DEPTH_CHUNK):
+        rays = model.collider(camera.generate_rays(camera_indices=0, coords=chunk[:, [1, 0]].to(model.device)))
+        depths.append(_terminations(model, rays)[0].cpu())
+    return torch.cat(depths).reshape(pixels.shape[:-1]).float().numpy()
 
 
 def project_prompt(camera: Cameras, point: Tensor) -> Tuple[float, float]:
@@ -132,3 +233,122 @@ def project_prompt(camera: Cameras, point: Tensor) -> Tuple[float, float]:
             f"{width}x{height} image"
         )
     return x, y
+
+
+def view_share(mask: np.ndarray) -> float:
+    """Share of the image's pixels inside a mask (H, W)."""
+    return float(np.count_nonzero(mask)) / max(mask.size, 1)
+
+
+def border_share(mask: np.ndarray) -> float:
+    """Share of the image's border pixels (its outermost rows and columns) inside a mask (H, W)."""
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape[0] <= 2 or mask.shape[1] <= 2:
+        return view_share(mask)
+    border = np.concatenate([mask[0], mask[-1], mask[1:-1, 0], mask[1:-1, -1]])
+    return float(np.count_nonzero(border)) / border.size
+
+
+def _shifted(values: np.ndarray, rows: int, cols: int, fill) -> np.ndarray:
+    """out[r, c] = values[r + rows, c + cols], `fill` where that lies outside the grid."""
+    height, width = values.shape
+    out = np.full_like(values, fill)
+    out[max(0, -rows) : min(height, height - rows), max(0, -cols) : min(width, width - cols)] = values[
+        max(0, rows) : min(height, height + rows), max(0, cols) : min(width, width + cols)
+    ]
+    return out
+
+
+def in_front_share(cells: np.ndarray, depth: np.ndarray) -> Optional[float]:
+    """Share of a mask's edge along which the mask lies in front of what surrounds it (an occluding edge).
+
+    `cells` (rows, cols) is the mask on a grid of cells and `depth` (rows, cols) the rendered depth at their
+    centres. Each cell inside the mask with a 4-neighbour outside it (within the image) is one step of the
+    edge. The surface inside is continued across the edge: the inverse depth of a plane is linear in image
+    coordinates, so it is extrapolated from the two inside cells nearest the edge (a wall or a floor seen at
+    a grazing angle continues as predicted; a surface behind an object does not). The step is occluding
+    when the outside cell is further than both that prediction and the inside cell by more than EDGE_JUMP
+    (relative). Masks are decoded on a coarse grid and are often a cell or two too large or too small, so
+    the same test is also made 2 and 3 cells away on both sides, and any one of them counts. The depth is
+    first median-filtered over 3 x 3 cells: that removes a NeRF's isolated stray depths (rays that slip
+    through a thin surface) and keeps its step edges in place; only objects under 3 cells across (less
+    than 3/64 of the image on SAM's grid) vanish with it. None when the mask has no edge inside the image
+    (empty, or everything).
+    """
+    cells = np.asarray(cells, dtype=bool)
+    depth = ndimage.median_filter(np.asarray(depth, dtype=np.float64), size=3, mode="nearest")
+    disparity = 1.0 / np.maximum(depth, 1e-9)
+    steps = occluding = 0
+    for rows, cols in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        edge = cells & _shifted(~cells, rows, cols, False)
+        found = np.zeros_like(edge)
+        for k in EDGE_OFFSETS:
+            outside = _shifted(~cells, k * rows, k * cols, False)
+            beyond = _shifted(disparity, k * rows, k * cols, np.nan)
+            near_in = _shifted(cells, -(k - 1) * rows, -(k - 1) * cols, False)
+            first = _shifted(disparity, -(k - 1) * rows, -(k - 1) * cols, np.nan)
+            far_in = _shifted(cells, -k * rows, -k * cols, False)
+            second = _shifted(disparity, -k * rows, -k * cols, np.nan)
+            predicted = first + (first - second) * (2 * k - 1)  # 2k - 1 cells from `first` to `beyond`
+            with np.errstate(invalid="ignore"):
+                jump = (beyond < predicted * (1.0 - EDGE_JUMP)) & (beyond < first * (1.0 - EDGE_JUMP))
+            found |= edge & outside & near_in & far_in & jump
+        steps += int(edge.sum())
+        occluding += int(found.sum())
+    return None if steps == 0 else occluding / steps
+
+
+def check_click(
+    view: str,
+    time: float,
+    mask: np.ndarray,
+    cells: np.ndarray,
+    depth: np.ndarray,
+    pixels: Sequence[Tuple[float, float]],
+    labels: Sequence[int],
+    hits: Sequence[ClickHit],
+    truth_background: Optional[bool] = None,
+) -> Tuple[Dict[str, Any], List[str]]:
+    """The numbers and warning lines (see the module docstring) of the clicks' mask in the clicked view.
+
+    `mask` (H, W) is the decoder's mask for the clicks, `cells` (rows, cols) the same mask on the grid of
+    the rendered `depth` (rows, cols); `truth_background` whether the ground truth shows no object at the
+    first positive click (None without ground truth).
+    """
+    numbers: Dict[str, Any] = {
+        "mask_share": view_share(mask),
+        "mask_border_share": border_share(mask),
+        "mask_in_front_share": in_front_share(cells, depth),
+    }
+    where = f"the mask at the clicked view {view} (time {time:g})"
+    warnings = []
+    if numbers["mask_share"] > MOST_OF_VIEW:
+        warnings.append(
+            f"{where} covers {100 * numbers['mask_share']:.0f}% of the image (more than half): it is more likely "
+            "the background or the whole frame than one object; click inside the object, or add --negative "
+            "clicks on what is not it"
+        )
+    reasons = []
+    front = numbers["mask_in_front_share"]
+    if front is not None and front < IN_FRONT:
+        reasons.append(
+            f"{where} is in front of its surroundings along {100 * front:.0f}% of its edge (an object's along "
+            "most of it)"
+        )
+    if numbers["mask_border_share"] > MOST_OF_BORDER:
+        reasons.append(
+            f"{where} touches {100 * numbers['mask_border_share']:.0f}% of the image border (an object's less "
+            "than half)"
+        )
+    for (x, y), label, hit in zip(pixels, labels, hits):
+        if label and hit.at_far_bound:
+            reasons.append(
+                f"the ray of the click at (x={x:g}, y={y:g}) ends at its far bound (depth {hit.depth:.3g}, "
+                f"{100 * hit.depth_share:.0f}% of the way from near {hit.near:.3g} to far {hit.far:.3g})"
+            )
+    if truth_background:
+        reasons.append("the scene's ground truth shows no object at the clicked pixel")
+    if reasons:
+        warnings.append("the click seems to have hit the background: " + "; ".join(reasons))
+    numbers["background"] = bool(reasons)
+    return numbers, warnings
