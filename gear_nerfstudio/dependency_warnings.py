@@ -23,6 +23,10 @@ DEPENDENCY_WARNINGS: Tuple[Tuple[str, Type[Warning], Optional[str]], ...] = (
     ("This DataLoader will create", UserWarning, "torch.utils.data.dataloader"),
     # nerfstudio's trainer builds its (disabled on the CPU) grad scaler with the deprecated torch.cuda.amp API.
     ("`torch.cuda.amp.GradScaler(args...)` is deprecated", FutureWarning, "nerfstudio.engine.trainer"),
+    # nerfstudio's viewmatrix (ns-render spiral) calls torch.cross without its dim argument.
+    ("Using torch.cross without specifying the dim arg is deprecated", UserWarning, "nerfstudio.cameras.camera_utils"),
+    # nerfstudio's pose interpolation (ns-render interpolate, ns-gear-path through-cameras) re-wraps tensors.
+    ("To copy construct from a tensor", UserWarning, "nerfstudio.cameras.camera_utils"),
     # nerfstudio's writer logs the loss dictionary's tensors, which carry gradients, as floats.
     ("Converting a tensor with requires_grad=True to a scalar", UserWarning, "nerfstudio.utils.writer"),
 )
