@@ -20,7 +20,7 @@ from __future__ import annotations
 from abc import abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Literal, Optional, Sequence, Tuple, Type
+from typing import Dict, List, Literal, Optional, Sequence, Tuple, Type
 
 import numpy as np
 import torch
@@ -200,6 +200,15 @@ class MultiViewVideoDataParser(DataParser):
         if window[-1] - window[0] != count - 1:
             raise DatasetError(f"{self.config.data}: frames are missing inside the window {window[0]}..{window[-1]}")
         return window
+
+
+def cameras_by_name(cameras: Cameras, metadata: dict) -> Dict[str, Cameras]:
+    """The first image's camera of each dataset camera name in a split (metadata ``camera_names`` and
+    ``camera_ids``), in the order the images list them."""
+    named: Dict[str, Cameras] = {}
+    for index, camera_id in enumerate(metadata["camera_ids"].tolist()):
+        named.setdefault(metadata["camera_names"][camera_id], cameras[index : index + 1])
+    return named
 
 
 def surrounds_scene(camera_to_worlds: np.ndarray) -> bool:

@@ -30,6 +30,7 @@ from nerfstudio.cameras.camera_utils import get_interpolated_poses
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from typing_extensions import Annotated
 
+from gear_nerfstudio.data_parsers.multiview import cameras_by_name
 from gear_nerfstudio.errors import InputError
 
 
@@ -52,14 +53,12 @@ def rig_cameras(load_config: Path) -> Tuple[Dict[str, Cameras], List[str], int]:
     num_frames = 1
     for split in ("train", "test"):
         outputs = dataparser.get_dataparser_outputs(split)
-        metadata = outputs.metadata
-        num_frames = int(metadata.get("num_frames", 1))
-        for index, camera_id in enumerate(metadata["camera_ids"].tolist()):
-            name = metadata["camera_names"][camera_id]
-            if name not in cameras:
-                cameras[name] = outputs.cameras[index : index + 1]
-                if split == "test":
-                    held_out.append(name)
+        num_frames = int(outputs.metadata.get("num_frames", 1))
+        named = cameras_by_name(outputs.cameras, outputs.metadata)
+        if split == "test":
+            held_out = [name for name in named if name not in cameras]
+        for name, camera in named.items():
+            cameras.setdefault(name, camera)
     return cameras, held_out, num_frames
 
 

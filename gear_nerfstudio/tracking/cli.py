@@ -36,6 +36,7 @@ import tyro
 from PIL import Image
 
 from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.data_parsers.multiview import cameras_by_name
 from gear_nerfstudio.sam.interface import cell_centres
 from gear_nerfstudio.tools.synthetic.ground_truth import GroundTruth
 from gear_nerfstudio.tools.video import write_video
@@ -169,12 +170,11 @@ def dataset_cameras(pipeline) -> Tuple[Dict[str, Any], List[str]]:
         metadata = dataset.metadata
         if "camera_names" not in metadata or "camera_ids" not in metadata:
             raise TrackingError("the dataset has no camera names (metadata camera_names / camera_ids)")
-        for index, camera_id in enumerate(metadata["camera_ids"].tolist()):
-            name = metadata["camera_names"][camera_id]
-            if name not in cameras:
-                cameras[name] = dataset.cameras[index : index + 1]
-                if is_eval:
-                    held_out.append(name)
+        named = cameras_by_name(dataset.cameras, metadata)
+        if is_eval:
+            held_out = [name for name in named if name not in cameras]
+        for name, camera in named.items():
+            cameras.setdefault(name, camera)
     return cameras, held_out
 
 
