@@ -365,3 +365,17 @@ def test_a_region_that_shifts_up_keeps_its_features(lower):
     x_cells = torch.linspace(-1, 1, 16)
     far = x_cells < 0.4
     assert torch.equal(plane[2][..., far], old[2][..., far]) and not torch.equal(plane[2], old[2])
+
+
+def test_gears_in_use_follows_every_change_of_used_columns():
+    field = small_field()
+    field.train()
+    set_gear_ramp(field, 0.0, 4.0)
+    positions, times = random_inputs(400)
+    train_step(field, torch.optim.Adam(field.radiance_parameters(), lr=0.01), positions.clamp(-1, 1), times)
+    assert field.gears_in_use() == field.used_gears.tolist() == [True, True, True, True]
+    field.used_columns[1:] = False
+    assert field.gears_in_use() == [True, False, False, False]
+    restored = small_field()
+    restored.load_state_dict(field.state_dict())
+    assert restored.gears_in_use() == [True, False, False, False]

@@ -201,3 +201,11 @@ def test_accumulate_over_packed_samples_equals_padded_weighted_sum():
     assert torch.allclose(split.accumulate(weights, split.pack(values)), expected, atol=1e-6)
     assert split.ray_index.shape == (int(split.num_samples_per_ray.sum()),)
     assert torch.equal(torch.bincount(split.ray_index, minlength=split.valid.shape[0]), split.num_samples_per_ray)
+
+
+def test_packed_order_is_the_row_major_order_of_the_real_slots():
+    base = base_samples()
+    split = split_ray_samples(base, random_levels(base.shape))
+    expected = split.valid.reshape(-1).nonzero()[:, 0]
+    assert torch.equal(split.sample_index, expected)
+    assert torch.equal(split.ray_index, expected // split.valid.shape[1])

@@ -8,7 +8,7 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
-from jaxtyping import Float, Int
+from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
 from nerfstudio.cameras.rays import Frustums, RaySamples
@@ -18,6 +18,7 @@ from nerfstudio.field_components.mlp import MLP
 from nerfstudio.field_components.spatial_distortions import SpatialDistortion
 from nerfstudio.fields.base_field import Field
 
+from gear_nerfstudio import distributed
 from gear_nerfstudio.fields.gear_function import GearFunction, gear_level
 from gear_nerfstudio.fields.planes import (
     TIME_PLANE_AXES,
@@ -150,6 +151,8 @@ class GearField(Field):
         self.register_buffer(
             "used_columns", torch.zeros(num_gears, len(resolutions), 3, max(resolutions), dtype=torch.bool)
         )
+        self.used_gears_seen: Tuple[Optional[Tensor], int, List[bool]] = (None, -1, [])
+        """(used_columns tensor, its version, used_gears) when last read on the host (``gears_in_use``)."""
         self.basis = nn.Linear(3 * feature_dim * len(resolutions), feature_dim, bias=False)
         self.gear_function = GearFunction(gear_feature_dim, gear_resolution, max(1, gear_time_resolution or num_frames))
 
@@ -199,16 +202,26 @@ class GearField(Field):
         self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"], levels: Int[Tensor, "N"]
     ) -> Float[Tensor, "N M"]:
         """Eq 6-7: f = sum_G m_G f^G, evaluating each sample only with the planes of its own gear."""
-        order = torch.argsort(levels)
-        counts = torch.bincount(levels, minlength=self.num_gears + 1)[1 : self.num_gears + 1].tolist()
+        sorted_levels, order = torch.sort(levels)
+        # samples per gear from the sorted levels (p in 1..N_gear, Eq 5): bincount would sync with the host
+        bounds = torch.searchsorted(sorted_levels, torch.arange(1, self.num_gears + 2, device=levels.device))
+        counts = bounds[1:] - bounds[:-1]
         training = self.training and torch.is_grad_enabled()
+        if not training:
+            counts = counts.tolist()
+        else:
+            new = self.claim_columns(x, levels)
+            # the field's one host sync: samples per gear and, after the claims, the gears in use and the gears with
+            # newly used columns (under DDP both include the other processes' claims, so every process decides alike)
+            host = torch.cat([counts, self.used_gears.long(), new.flatten(1).any(dim=1).long()]).tolist()
+            counts, used, renewed = (host[k * self.num_gears : (k + 1) * self.num_gears] for k in range(3))
+            self.used_gears_seen = (self.used_columns, self.used_columns._version, [bool(u) for u in used])
+            self.inherit_new_columns(new, [bool(r) for r in renewed])
         chunks = []
         start = 0
         for gear, count in enumerate(counts, start=1):
             if count:
                 index = order[start : start + count]
-                if training:
-                    self.claim_columns(x[index], gear)
                 chunks.append(self.gear_feature(x[index], t[index], gear))
             start += count
         if not chunks:
@@ -267,47 +280,75 @@ class GearField(Field):
         return self.used_columns.flatten(1).any(dim=1)
 
     @torch.no_grad()
-    def claim_columns(self, x: Float[Tensor, "N 3"], gear: int) -> None:
-        """Mark the columns of gear ``gear``'s space-time planes that samples at x (normalised) touch; columns
-        touched for the first time inherit the lower gear's (``inherit_columns``) before the gear is evaluated."""
-        touched = torch.zeros_like(self.used_columns[0])
+    def claim_columns(self, x: Float[Tensor, "N 3"], levels: Int[Tensor, "N"]) -> Bool[Tensor, "G R 3 C"]:
+        """Mark the columns of each gear's space-time planes that samples at x (normalised) of that gear level p
+        (Eq 5) touch; returns the columns each gear touched for the first time, which must inherit the lower
+        gears' (``inherit_columns``) before the gears are evaluated (Eq 6-7).
+
+        Called once per training forward pass, before any gear is evaluated. Under DDP every process claims what
+        any process's batch touched (``distributed.union``), so used_columns and the planes stay the same on every
+        process (and DDP's buffer broadcast from the first process loses no claim). No host synchronisation.
+        """
+        touched = torch.zeros_like(self.used_columns)
         for r, resolution in enumerate(self.resolutions):
             for j, axis in enumerate(TIME_PLANE_AXES):
-                touched[r, j, :resolution] = touched_columns(x[:, axis], resolution)
-        new = touched & ~self.used_columns[gear - 1]
-        if gear > 1 and bool(new.any()):
-            self.inherit_columns(gear, new)
-        self.used_columns[gear - 1] |= touched
+                touched[:, r, j, :resolution] = touched_columns(x[:, axis], resolution, levels - 1, self.num_gears)
+        touched = distributed.union(touched)
+        new = touched & ~self.used_columns
+        self.used_columns |= touched
+        return new
+
+    @torch.no_grad()
+    def inherit_new_columns(self, new: Bool[Tensor, "G R 3 C"], renewed: Optional[List[bool]] = None) -> None:
+        """``inherit_columns`` for every gear above the first with newly claimed columns (``claim_columns``'s
+        result); ``renewed``: which gears have any, when the caller has already read them on the host."""
+        if renewed is None:
+            renewed = new.flatten(1).any(dim=1).tolist()
+        for gear in range(2, self.num_gears + 1):
+            if renewed[gear - 1]:
+                self.inherit_columns(gear, new[gear - 1])
 
     @torch.no_grad()
     def inherit_columns(self, gear: int, columns: Tensor) -> None:
         """An upshift keeps what the region had learned: the given columns (resolution, plane, cell) of k^gear
         become those of the highest lower gear that has used them (gear 1 otherwise), resampled linearly to
         gear's rows (Sec 4.4's temporal resolutions). A region that moves up a gear then renders as before
-        the move, and its new rows start from its motion at the lower temporal resolution."""
-        remaining = columns
-        for source in range(gear - 1, 0, -1):
-            take = remaining if source == 1 else remaining & self.used_columns[source - 1]
-            if not bool(take.any()):
-                continue
-            remaining = remaining & ~take
-            for r, (target_plane, source_plane) in enumerate(
-                zip(self.time_planes[gear - 1].planes, self.time_planes[source - 1].planes)
-            ):
+        the move, and its new rows start from its motion at the lower temporal resolution.
+
+        The lower gears' used columns must already include the current claims (``claim_columns``). Every plane of
+        the gear is rewritten (unchanged where no column is given), so that no host synchronisation is needed."""
+        for r, target_plane in enumerate(self.time_planes[gear - 1].planes):
+            width = target_plane.shape[-1]
+            remaining = columns[r, :, :width]
+            inherited = target_plane
+            for source in range(gear - 1, 0, -1):
+                take = remaining if source == 1 else remaining & self.used_columns[source - 1, r, :, :width]
+                remaining = remaining & ~take
                 resampled = F.interpolate(
-                    source_plane, size=target_plane.shape[-2:], mode="bilinear", align_corners=True
+                    self.time_planes[source - 1].planes[r], size=target_plane.shape[-2:], mode="bilinear",
+                    align_corners=True,
                 )
-                mask = take[r, :, : target_plane.shape[-1]][:, None, None, :]
-                target_plane.copy_(torch.where(mask, resampled, target_plane))
+                inherited = torch.where(take[:, None, None, :], resampled, inherited)
+            target_plane.copy_(inherited)
+
+    def gears_in_use(self) -> List[bool]:
+        """``used_gears`` on the host, without a device sync when ``used_columns`` has not changed since it was
+        last read: ``gear_features`` reads it after each training step's claims, in the same sync as its counts
+        of samples per gear, so ``regularisers`` gets it for free every step."""
+        tensor, version, used = self.used_gears_seen
+        if tensor is not self.used_columns or version != self.used_columns._version:
+            used = self.used_gears.tolist()
+            self.used_gears_seen = (self.used_columns, self.used_columns._version, used)
+        return used
 
     def used_time_planes(self) -> List[Tensor]:
         """Space-time planes k^G of the gears that have had a training sample."""
-        used = self.used_gears.tolist()
+        used = self.gears_in_use()
         return [plane for gear, triple in enumerate(self.time_planes) if used[gear] for plane in triple.planes]
 
     def parameters_in_use(self) -> int:
         """Number of parameters that training updates: everything but the planes of unused gears."""
-        used = self.used_gears.tolist()
+        used = self.gears_in_use()
         unused = {id(plane) for gear, triple in enumerate(self.time_planes) if not used[gear] for plane in triple.planes}
         return sum(p.numel() for p in self.parameters() if id(p) not in unused)
 

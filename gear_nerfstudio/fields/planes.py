@@ -16,7 +16,7 @@ from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
-from jaxtyping import Bool, Float
+from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
 from nerfstudio.field_components.activations import trunc_exp
@@ -65,7 +65,7 @@ def broadcast_times(times: Optional[Tensor], shape: torch.Size, like: Tensor) ->
 
 def space_coords(x: Float[Tensor, "N 3"]) -> Float[Tensor, "3 N 2"]:
     """Coordinates of each sample on the spatial planes (x, y), (x, z), (y, z)."""
-    return torch.stack([x[:, list(axes)] for axes in SPACE_PLANE_AXES])
+    return torch.stack([torch.stack([x[:, a], x[:, b]], dim=-1) for a, b in SPACE_PLANE_AXES])
 
 
 def time_coords(x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "3 N 2"]:
@@ -74,14 +74,18 @@ def time_coords(x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tenso
     return torch.stack([torch.cat([x[:, axis : axis + 1], t], dim=-1) for axis in TIME_PLANE_AXES])
 
 
-def touched_columns(u: Float[Tensor, "N"], resolution: int) -> Bool[Tensor, "resolution"]:
+def touched_columns(
+    u: Float[Tensor, "N"], resolution: int, groups: Int[Tensor, "N"], num_groups: int
+) -> Bool[Tensor, "num_groups resolution"]:
     """Cells along one spatial axis of a plane of ``resolution`` cells (``align_corners=True``, border-clamped)
-    that bilinear sampling at coordinates u in [-1, 1] reads."""
+    that bilinear sampling at coordinates u in [-1, 1] reads, per group of samples (row ``groups[i]`` for sample i);
+    no host synchronisation."""
     position = (u.clamp(-1.0, 1.0) + 1.0) * 0.5 * (resolution - 1)
     low = position.floor().long().clamp(0, resolution - 1)
-    touched = torch.zeros(resolution, dtype=torch.bool, device=u.device)
-    touched[low] = True
-    touched[(low + 1).clamp(max=resolution - 1)] = True
+    touched = torch.zeros(num_groups, resolution, dtype=torch.bool, device=u.device)
+    mark = torch.ones_like(low, dtype=torch.bool)  # a device tensor: assigning the scalar True would upload it
+    touched.index_put_((groups, low), mark)
+    touched.index_put_((groups, (low + 1).clamp(max=resolution - 1)), mark)
     return touched
 
 

@@ -38,6 +38,7 @@ from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
+from gear_nerfstudio import distributed
 from gear_nerfstudio.gears.config import GearUpdateConfig
 from gear_nerfstudio.gears.loss_maps import (
     LossMap,
@@ -161,7 +162,9 @@ class GearUpdater:
         self.rng = np.random.default_rng([self.seed, int(self.state.num_updates)])
         frame_ids = self.views.train_dataset.metadata["frame_ids"].numpy()
         maps = [self.loss_map(index) for index in spread_views(frame_ids, config.views_per_update, self.rng)]
-        variance = float(np.mean([float(m.loss.var()) for m in maps]))
+        # Under DDP every process renders the same views (same seed) and decides with the mean variance, so that
+        # all take the same branch (and GearUpdateState agrees); the Eq 11 steps then agree by ``shift_gears``.
+        variance = float(distributed.average(torch.stack([m.loss.var() for m in maps]).double().mean()))
         stats = {"loss_map_variance": variance}
         if variance < config.variance_threshold:
             self.state.finished.fill_(True)

@@ -8,6 +8,7 @@ from typing import Optional, Protocol, Tuple
 import torch
 from torch import Tensor
 
+from gear_nerfstudio import distributed
 from gear_nerfstudio.fields.gear_function import gear_level
 
 
@@ -78,14 +79,31 @@ def shift_gears(
     max_steps: int,
 ) -> int:
     """Eq 11 steps of `optimizer` (on the gear function only) until the points sit at their target levels, at
-    most max_steps; returns the number of steps taken."""
+    most max_steps; returns the number of steps taken.
+
+    Under DDP each process takes these steps on its own points, as in a training step: the gradients are averaged
+    over the processes and the steps end once the points of every process sit at their targets. Every process
+    then steps the same gradients the same number of times, so the gear function and the optimizer's state stay
+    identical whether or not the processes' points are (their loss maps are rendered from the same model, but the
+    points on each ray are jittered per process, and GPU backward passes are not bit-reproducible). This keeps the
+    optimizer's state without copying it between processes, which a broadcast of the first process's result
+    would need.
+
+    The gradients are taken with ``torch.autograd.grad``, not ``backward``: DDP's hooks on the parameters count
+    any backward pass between two training steps as gradient accumulation for the next one, which then fails on
+    the gear function's missing gradient.
+    """
+    parameters = [p for group in optimizer.param_groups for p in group["params"]]
     steps = 0
     while steps < max_steps:
         optimizer.zero_grad(set_to_none=True)
         g = field.gear_values(points, times)
-        if bool((gear_level(g.detach(), field.num_gears) == targets).all()):
+        if bool(distributed.intersection((gear_level(g.detach(), field.num_gears) == targets).all())):
             break
-        upshift_loss(g, targets, weights, upshift, stay_weight, field.num_gears, margin).backward()
+        loss = upshift_loss(g, targets, weights, upshift, stay_weight, field.num_gears, margin)
+        for parameter, gradient in zip(parameters, torch.autograd.grad(loss, parameters, allow_unused=True)):
+            parameter.grad = gradient
+        distributed.average_gradients(parameters)
         optimizer.step()
         steps += 1
     optimizer.zero_grad(set_to_none=True)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type
 
+import matplotlib
 import numpy as np
 import torch
 import tyro
@@ -249,6 +250,9 @@ class GearNeRFModel(Model):
         self.renderer_depth = DepthRenderer(method="median")
         self.renderer_sam = SamRenderer()
         self.renderer_gear_level = GearLevelRenderer()
+        # the "gear" image's turbo colour map (as nerfstudio's apply_colormap, whose range asserts and per-call
+        # table upload each cost a host sync every training step)
+        self.register_buffer("gear_colors", torch.tensor(matplotlib.colormaps["turbo"].colors), persistent=False)
         self.rgb_loss = MSELoss()
         self._lpips: Dict[str, Any] = {}
         self.render_hooks: List[Callable[[Cameras, Dict[str, Tensor]], Dict[str, Tensor]]] = []
@@ -331,9 +335,15 @@ class GearNeRFModel(Model):
             "accumulation": accumulation,
             "sam": sam,
             "gear_level": gear_level,
-            "gear": colormaps.apply_colormap(gear_fraction.detach(), colormaps.ColormapOptions(colormap="turbo")),
+            "gear": self.gear_colors[(gear_fraction.detach().nan_to_num(0.0) * 255).long()[..., 0]],
             "num_samples": split.num_samples_per_ray[:, None].to(weights.dtype),
         }
+        if self.training:
+            # The K-Planes regularisers are computed here, in the forward pass, not in get_loss_dict: under DDP
+            # (several GPUs) a plane that only the loss would use (a gear in use but absent from this process's
+            # batch) is not reached from the forward's outputs, so DDP marks it unused, and the backward pass then
+            # fails when its gradient arrives.
+            outputs["regularisers"] = self.field.regularisers()
         if ray_samples_list:
             weights_list.append(split.to_base(weights))
             ray_samples_list.append(base_samples)
@@ -425,7 +435,7 @@ class GearNeRFModel(Model):
             target = batch["sam_features"].to(self.device)
             loss_dict["sam_loss"] = config.sam_loss_mult * self.rgb_loss(target, outputs["sam"])
         if self.training:
-            regularisers = self.field.regularisers()
+            regularisers = outputs["regularisers"]
             loss_dict["plane_tv"] = config.plane_tv_mult * regularisers["plane_tv"]
             loss_dict["l1_time_planes"] = config.l1_time_planes_mult * regularisers["l1_time_planes"]
             loss_dict["time_smoothness"] = config.time_smoothness_mult * regularisers["time_smoothness"]
@@ -460,23 +470,31 @@ class GearNeRFModel(Model):
         metric = self._lpips["metric"]
         return None if metric is None else metric.to(self.device)
 
-    def get_image_metrics_and_images(
-        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
-    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
-        """PSNR, SSIM (and LPIPS when its weights are local) on a full image; rgb, depth, gear images."""
+    def image_metrics(self, rgb: Float[Tensor, "H W 3"], image: Float[Tensor, "H W C"]) -> Dict[str, float]:
+        """PSNR, SSIM (and LPIPS when its weights are local) of a render against its image (RGBA images are
+        blended with the background first)."""
         from torchmetrics.functional.image import structural_similarity_index_measure
 
-        image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
-        rgb = outputs["rgb"]
+        image = self.renderer_rgb.blend_background(image.to(self.device))
+        rgb = rgb.to(self.device)
         image_nchw = torch.moveaxis(image, -1, 0)[None]
         rgb_nchw = torch.moveaxis(rgb, -1, 0)[None]
-        metrics_dict = {
+        metrics = {
             "psnr": float(psnr(rgb, image)),
             "ssim": float(structural_similarity_index_measure(rgb_nchw, image_nchw, data_range=1.0)),
         }
         lpips = self.lpips()
         if lpips is not None:
-            metrics_dict["lpips"] = float(lpips(rgb_nchw.clamp(0, 1), image_nchw.clamp(0, 1)))
+            metrics["lpips"] = float(lpips(rgb_nchw.clamp(0, 1), image_nchw.clamp(0, 1)))
+        return metrics
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        """PSNR, SSIM (and LPIPS when its weights are local) on a full image; rgb, depth, gear images."""
+        image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        rgb = outputs["rgb"]
+        metrics_dict = self.image_metrics(rgb, image)
         images_dict = {
             "img": torch.cat([image, rgb], dim=1),
             "accumulation": colormaps.apply_colormap(outputs["accumulation"]),

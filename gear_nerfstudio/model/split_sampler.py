@@ -85,7 +85,10 @@ def split_ray_samples(
     counts = split_base ** (levels.long() - 1)
     cumulative = counts.cumsum(dim=1)
     num_samples_per_ray = cumulative[:, -1]
-    max_samples = int(num_samples_per_ray.max()) if num_rays else 0
+    # the only host sync: the padded width and the packed length, read together
+    max_samples, num_valid = (
+        torch.stack([num_samples_per_ray.max(), num_samples_per_ray.sum()]).tolist() if num_rays else (0, 0)
+    )
 
     slot = torch.arange(max_samples, device=device).expand(num_rays, max_samples)
     valid = slot < num_samples_per_ray[:, None]
@@ -114,17 +117,21 @@ def split_ray_samples(
         spacing_ends=None,
         spacing_to_euclidean_fn=None,
     )
-    flat_valid = valid.reshape(-1)
-    sample_index = flat_valid.nonzero()[:, 0]
+    # packed sub-sample k of ray r sits at slot k - (first packed index of r) of row r
+    ray_index = torch.repeat_interleave(
+        torch.arange(num_rays, device=device), num_samples_per_ray, output_size=num_valid
+    )
+    first_packed = num_samples_per_ray.cumsum(0) - num_samples_per_ray
+    sample_index = torch.arange(num_valid, device=device) + (ray_index * max_samples - first_packed[ray_index])
     return SplitRaySamples(
         ray_samples=split,
         valid=valid,
         sample_index=sample_index,
-        packed_index=(flat_valid.long().cumsum(0) - 1).reshape(num_rays, max_samples),
+        packed_index=(valid.reshape(-1).long().cumsum(0) - 1).reshape(num_rays, max_samples),
         parent=parent,
         num_base_samples=num_base,
         num_samples_per_ray=num_samples_per_ray,
-        ray_index=torch.div(sample_index, max(max_samples, 1), rounding_mode="floor"),
+        ray_index=ray_index,
     )
 
 

@@ -1,0 +1,316 @@
+"""GPU speed at Neural 3D Video size: ``gear-nerf`` against the one-gear baseline (issue 14).
+
+A synthetic scene (``gear_nerfstudio.tools.synthetic``, Technicolor layout so that no video decoder is needed) with
+N3D's camera count and training resolution (21 cameras, 1352 x 1014: downscale 2 of 2704 x 2028) is trained with
+nerfstudio's own objects: the method preset's ``TrainerConfig.setup()`` builds the ``Trainer``, ``Trainer.setup()``
+the pipeline, optimisers and training callbacks, and every iteration runs as ``Trainer.train`` runs it (callbacks
+before, ``Trainer.train_iteration``, callbacks after), without the viewer, writers, evaluation or checkpoints.
+
+Per method:
+
+1. ``--pretrain`` iterations (not timed), so that the loss maps of the gear updates see a partly trained field.
+2. Gear-NeRF only: ``--updates`` gear updates (Sec 4.3), run by the pipeline's own ``GearUpdater`` and timed one by
+   one. They upshift regions of the scene; without them every sample stays in gear 1 and Gear-NeRF costs what
+   the one-gear model costs. The gear shares they leave (visible surface of their loss-map views) are reported.
+3. Host syncs per training iteration: ``--sync-iterations`` iterations under
+   ``torch.cuda.set_sync_debug_mode("warn")``, counted per source line (CUDA only).
+4. ``--warmup`` iterations, then ``--windows`` timing windows of ``--window`` iterations each, with
+   ``torch.cuda.synchronize`` at the edges of each window only; iteration time is window time / window length
+   (median, quartiles and range over windows); rays per second follow from the preset's batch. Peak GPU memory
+   (``torch.cuda.max_memory_allocated``) over these iterations.
+5. Render: ``--renders`` full frames of the held-out camera (``model.get_outputs_for_camera``, the viewer's and
+   ``ns-render``'s path) after one warm-up render, with their peak memory.
+
+    python benchmarks/gpu_speed.py --device cuda --scene outputs/gpu_speed/scene --output outputs/gpu_speed \\
+        --results benchmarks/results
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import copy
+import datetime
+import platform
+import statistics
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Dict, List
+
+import torch
+from torch import Tensor
+
+from nerfstudio.engine.callbacks import TrainingCallbackLocation
+from nerfstudio.engine.trainer import Trainer
+
+from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
+from gear_nerfstudio.gears.updater import GearUpdater
+from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_baseline
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
+
+METHODS = {"gear-nerf": gear_nerf, "gear-nerf-one-gear": gear_nerf, "gear-nerf-baseline": gear_nerf_baseline}
+"""``gear-nerf-one-gear``: the gear-nerf preset with N_gear = 1 (K-Planes with the full time axis and uniform
+sampling at gear-nerf's sizes, rays and samples): the fair baseline, everything equal but the gears.
+``gear-nerf-baseline``: the registered one-gear preset, sized as the small CPU preset."""
+HELD_OUT_CAMERA = "10"
+"""Held-out camera of the 3 x 7 rig (row 1, column 3: the centre)."""
+
+
+class Run:
+    """One method: its Trainer (set up without viewer, writers or checkpoints) and its measurements."""
+
+    def __init__(self, method: str, args: argparse.Namespace) -> None:
+        config = copy.deepcopy(METHODS[method].config)
+        config.machine.device_type = args.device
+        config.machine.seed = args.seed
+        config.vis = "tensorboard"  # no viewer server; no writer is set up either (that happens in Trainer.train)
+        config.output_dir = args.output / "runs"
+        datamanager = config.pipeline.datamanager
+        datamanager.dataparser = TechnicolorDataParserConfig(
+            data=args.scene, held_out_camera=HELD_OUT_CAMERA, cache_dir=args.output / "frames"
+        )
+        datamanager.sam_cache_dir = args.output / "sam"
+        if args.model_frames:
+            config.pipeline.model.num_frames = args.model_frames
+        if method == "gear-nerf-one-gear":
+            config.pipeline.model.num_gears = 1
+        self.method = method
+        self.cuda = args.device == "cuda"
+        self.trainer: Trainer = config.setup(local_rank=0, world_size=1)
+        self.trainer.setup()
+        self.step = 0
+        self.samples_per_ray: List[Tensor] = []
+
+    @property
+    def model(self):
+        return self.trainer.pipeline.model
+
+    def synchronize(self) -> None:
+        if self.cuda:
+            torch.cuda.synchronize()
+
+    def iteration(self) -> None:
+        """One training iteration as ``Trainer.train`` runs it."""
+        for callback in self.trainer.callbacks:
+            callback.run_callback_at_location(self.step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        _, _, metrics = self.trainer.train_iteration(self.step)
+        for callback in self.trainer.callbacks:
+            callback.run_callback_at_location(self.step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+        self.samples_per_ray.append(metrics["samples_per_ray"].detach())
+        self.step += 1
+
+    def timed(self, function: Callable[[], Any]) -> float:
+        """Seconds of ``function()``, with the device synchronised at both ends."""
+        self.synchronize()
+        start = time.perf_counter()
+        function()
+        self.synchronize()
+        return time.perf_counter() - start
+
+    def gear_updates(self, count: int) -> List[Dict[str, float]]:
+        """Run ``count`` gear updates with the pipeline's own updater; their durations and statistics."""
+        (updater,) = [c.func for c in self.trainer.callbacks if isinstance(c.func, GearUpdater)]
+        results = []
+        for _ in range(count):
+            stats: Dict[str, float] = {}
+            seconds = self.timed(lambda: stats.update(updater.update(self.step)))
+            results.append({"seconds": seconds, **stats})
+        return results
+
+    def syncs(self, iterations: int) -> collections.Counter:
+        """Host syncs per source line over ``iterations`` training iterations (CUDA's sync debug mode)."""
+        counts: collections.Counter = collections.Counter()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                for _ in range(iterations):
+                    self.iteration()
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+        for warning in caught:
+            if "synchronizing" in str(warning.message).lower():
+                counts[f"{Path(warning.filename).name}:{warning.lineno}"] += 1
+        return counts
+
+    def render(self, count: int) -> List[float]:
+        """Seconds per full-frame render of the held-out camera (after one warm-up render)."""
+        camera = self.trainer.pipeline.datamanager.eval_dataset.cameras[0:1].to(self.model.device)
+        self.model.eval()
+        try:
+            self.model.get_outputs_for_camera(camera)
+            if self.cuda:
+                torch.cuda.reset_peak_memory_stats()
+            return [self.timed(lambda: self.model.get_outputs_for_camera(camera)) for _ in range(count)]
+        finally:
+            self.model.train()
+
+
+def measure(method: str, args: argparse.Namespace) -> Dict[str, Any]:
+    run = Run(method, args)
+    for _ in range(args.pretrain):
+        run.iteration()
+    updates = run.gear_updates(args.updates) if run.model.num_gears > 1 else []
+    syncs = run.syncs(args.sync_iterations) if run.cuda else None
+    for _ in range(args.warmup):
+        run.iteration()
+    if run.cuda:
+        torch.cuda.reset_peak_memory_stats()
+    run.samples_per_ray.clear()
+    def window() -> None:
+        for _ in range(args.window):
+            run.iteration()
+
+    windows = [run.timed(window) / args.window for _ in range(args.windows)]
+    train_memory = torch.cuda.max_memory_allocated() if run.cuda else None
+    samples_per_ray = float(torch.stack(run.samples_per_ray).mean())
+    renders = run.render(args.renders)
+    render_memory = torch.cuda.max_memory_allocated() if run.cuda else None
+    datamanager = run.trainer.pipeline.datamanager
+    camera = datamanager.eval_dataset.cameras
+    result = {
+        "method": method,
+        "rays": datamanager.config.train_num_rays_per_batch,
+        "base_samples": run.model.config.num_samples,
+        "frames": run.model.num_frames,
+        "windows": windows,
+        "samples_per_ray": samples_per_ray,
+        "train_memory": train_memory,
+        "renders": renders,
+        "render_size": (int(camera.width[0]), int(camera.height[0])),
+        "render_memory": render_memory,
+        "updates": updates,
+        "syncs": syncs,
+        "sync_iterations": args.sync_iterations,
+        "parameters": sum(p.numel() for p in run.model.parameters()),
+    }
+    del run
+    if args.device == "cuda":
+        torch.cuda.empty_cache()
+    return result
+
+
+def gib(value: Any) -> str:
+    return "not measured (CPU)" if value is None else f"{value / 2**30:.2f}"
+
+
+def markdown(results: List[Dict[str, Any]], args: argparse.Namespace, command: str) -> str:
+    lines = [
+        "# GPU speed at Neural 3D Video size: gear-nerf and the one-gear baseline",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Machine: {machine(args.device)}. Date: {datetime.date.today().isoformat()}.",
+        "",
+        f"Scene: synthetic (`gear_nerfstudio.tools.synthetic`, mixed motion), Technicolor layout, {args.rows} x "
+        f"{args.cols} = {args.rows * args.cols} cameras at {args.width} x {args.height} (N3D's camera count and its "
+        f"usual downscale-2 resolution), {args.frames} frames; held-out camera {HELD_OUT_CAMERA}. "
+        + (
+            f"The models' planes are sized for {args.model_frames} frames (model `num_frames`), as for a "
+            f"{args.model_frames}-frame N3D video; the images span {args.frames} frames."
+            if args.model_frames
+            else "The models' planes are sized for the scene's frames."
+        ),
+        "",
+        f"Per method: {args.pretrain} training iterations, then (gear-nerf) {args.updates} gear updates by the "
+        f"pipeline's `GearUpdater`, then {args.warmup} warm-up iterations and {args.windows} windows of {args.window} "
+        f"timed iterations (`torch.cuda.synchronize` at window edges only). Seed {args.seed}.",
+        "",
+        "| method | rays / batch | base samples n | samples / ray (mean) | iteration ms: median [quartiles] (range) "
+        "| rays / s | peak train GiB | render ms / frame (FPS) | peak render GiB | parameters |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in results:
+        ms = [1000 * w for w in r["windows"]]
+        q1, _, q3 = statistics.quantiles(ms, n=4)
+        median = statistics.median(ms)
+        render_ms = 1000 * statistics.median(r["renders"])
+        lines.append(
+            f"| {r['method']} | {r['rays']} | {r['base_samples']} | {r['samples_per_ray']:.1f} | {median:.1f} "
+            f"[{q1:.1f}, {q3:.1f}] ({min(ms):.1f}-{max(ms):.1f}) | {r['rays'] / median * 1000:,.0f} "
+            f"| {gib(r['train_memory'])} | {render_ms:.0f} ({1000 / render_ms:.2f}) | {gib(r['render_memory'])} "
+            f"| {r['parameters']:,} |"
+        )
+    width, height = results[0]["render_size"]
+    lines += ["", f"Render: one full {width} x {height} frame, median of {args.renders}.", ""]
+    for r in results:
+        if r["updates"]:
+            lines.append(
+                f"Gear updates of {r['method']} (seconds each; gear shares of the views' visible surface after it):"
+            )
+            lines.append("")
+            for k, update in enumerate(r["updates"], start=1):
+                shares = " ".join(f"{update[key]:.2f}" for key in sorted(update) if key.startswith("gear_"))
+                lines.append(
+                    f"- update {k}: {update['seconds']:.2f} s, upshift mask area "
+                    f"{update.get('upshift_mask_area', float('nan')):.2f}, gears 1-{len(shares.split())}: {shares}"
+                )
+            lines.append("")
+    for r in results:
+        if r["syncs"] is None:
+            lines.append(f"Host syncs of {r['method']}: not measured (sync debug mode needs CUDA).")
+            continue
+        total = sum(r["syncs"].values()) / r["sync_iterations"]
+        where = ", ".join(f"{place} x{count / r['sync_iterations']:g}" for place, count in r["syncs"].most_common())
+        lines.append(f"Host syncs of {r['method']} per training iteration: {total:g} ({where or 'none'}).")
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def machine(device: str) -> str:
+    if device != "cuda":
+        return f"{platform.processor() or platform.machine()}, CPU, torch {torch.__version__}"
+    query = ["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"]
+    smi = subprocess.run(query, capture_output=True, text=True, check=False).stdout.strip()
+    return f"{smi} (nvidia-smi), torch {torch.__version__} (CUDA {torch.version.cuda})"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"])
+    parser.add_argument("--scene", type=Path, default=Path("outputs/gpu_speed/scene"), help="written if missing")
+    parser.add_argument("--width", type=int, default=1352)
+    parser.add_argument("--height", type=int, default=1014)
+    parser.add_argument("--rows", type=int, default=3)
+    parser.add_argument("--cols", type=int, default=7)
+    parser.add_argument("--frames", type=int, default=6)
+    parser.add_argument("--model-frames", type=int, default=300, help="model num_frames (planes' rows); 0: scene's")
+    parser.add_argument("--pretrain", type=int, default=300)
+    parser.add_argument("--updates", type=int, default=2)
+    parser.add_argument("--sync-iterations", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=20)
+    parser.add_argument("--window", type=int, default=10)
+    parser.add_argument("--windows", type=int, default=20)
+    parser.add_argument("--renders", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=42)
+    parser.add_argument("--output", type=Path, default=Path("outputs/gpu_speed"))
+    parser.add_argument("--results", type=Path, default=None, help="also write gpu_speed.md here")
+    args = parser.parse_args()
+    command = "python " + subprocess.list2cmdline(sys.argv)
+
+    if not (args.scene / "cameras_parameters.txt").is_file():
+        spec = SyntheticSpec(
+            dataset="technicolor",
+            width=args.width,
+            height=args.height,
+            frames=args.frames,
+            rows=args.rows,
+            cols=args.cols,
+        )
+        write_synthetic_scene(args.scene, spec)
+    results = []
+    for method in args.methods:
+        results.append(measure(method, args))
+        print(markdown(results, args, command), flush=True)
+    text = markdown(results, args, command)
+    for folder in [args.output] + ([args.results] if args.results else []):
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "gpu_speed.md").write_text(text)
+
+
+if __name__ == "__main__":
+    main()
