@@ -113,7 +113,7 @@ class MultiViewVideoDataParser(DataParser):
             rig = self.read_rig()
         except DatasetError as err:
             raise DatasetError(f"{err}{layout_hint(self.config.data, self.parser_name)}") from err
-        frames = self._window(rig)
+        frames = self.window(rig)
         held_out_name = self.config.held_out_camera or self.default_held_out
         if held_out_name not in rig.names:
             raise DatasetError(f"{self.config.data}: held-out camera {held_out_name!r} not found; cameras: {rig.names}")
@@ -125,8 +125,7 @@ class MultiViewVideoDataParser(DataParser):
         else:
             cameras = [held_out]
 
-        d = self.config.downscale_factor
-        sizes = [(int(rig.width[i]) // d, int(rig.height[i]) // d) for i in cameras]
+        sizes = self.image_sizes(rig, cameras)
         files = self.frame_files(rig, cameras, frames, sizes)
         kept = torch.tensor([path is not None for camera_files in files for path in camera_files])
         if not kept.any():
@@ -179,7 +178,13 @@ class MultiViewVideoDataParser(DataParser):
             },
         )
 
-    def _window(self, rig: ParsedRig) -> List[int]:
+    def image_sizes(self, rig: ParsedRig, cameras: Sequence[int]) -> List[Tuple[int, int]]:
+        """(width, height) of the given cameras' images after ``downscale_factor``."""
+        d = self.config.downscale_factor
+        return [(int(rig.width[i]) // d, int(rig.height[i]) // d) for i in cameras]
+
+    def window(self, rig: ParsedRig) -> List[int]:
+        """Frame numbers of the configured window (``frame_start``, ``frame_count``), checked against the rig's."""
         available = rig.frame_numbers
         start = available[0] if self.config.frame_start is None else self.config.frame_start
         if start not in available:

@@ -10,17 +10,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import subprocess
-import sys
 import time
 from pathlib import Path
-from typing import List, Literal
+from typing import Literal
 
 import tyro
 
-from gear_nerfstudio.dependency_warnings import pythonwarnings
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
+from gear_nerfstudio.tools.commands import run_command
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 
@@ -46,7 +43,7 @@ class DemoCommand:
         print(f"[demo] wrote a synthetic N3D scene ({self.cameras} cameras, {self.frames} frames) to {scene}")
 
         runs = self.output / "runs"
-        _run(
+        run_command(
             [
                 "ns-train", self.method,
                 "--output-dir", str(runs), "--experiment-name", "demo", "--timestamp", "demo",
@@ -55,30 +52,34 @@ class DemoCommand:
                 "--machine.device-type", self.device, "--vis", "tensorboard",
                 "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam-cache"),
                 "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache"),
-            ]
+            ],
+            "demo",
         )
         config = runs / "demo" / self.method / "demo" / "config.yml"
         metrics = self.output / "metrics.json"
         video = self.output / "video.mp4"
         sweep_path, sweep = self.output / "time_sweep.json", self.output / "time_sweep.mp4"
-        _run(["ns-eval", "--load-config", str(config), "--output-path", str(metrics)])
-        _run(
+        run_command(["ns-eval", "--load-config", str(config), "--output-path", str(metrics)], "demo")
+        run_command(
             [
                 "ns-render", "spiral", "--load-config", str(config), "--output-path", str(video),
                 "--seconds", "3", "--frame-rate", "10", "--radius", "0.05",
-            ]
+            ],
+            "demo",
         )
-        _run(
+        run_command(
             [
                 "ns-gear-path", "time-sweep", "--load-config", str(config), "--output-path", str(sweep_path),
                 "--frames", "30", "--fps", "10",
-            ]
+            ],
+            "demo",
         )
-        _run(
+        run_command(
             [
                 "ns-render", "camera-path", "--load-config", str(config), "--camera-path-filename", str(sweep_path),
                 "--output-path", str(sweep),
-            ]
+            ],
+            "demo",
         )
         results = json.loads(metrics.read_text())["results"]
         shown = ", ".join(f"{k} {v:.4g}" for k, v in results.items() if not k.endswith("_std"))
@@ -88,20 +89,6 @@ class DemoCommand:
         print(f"[demo] metrics: {metrics}")
         print(f"[demo] config:  {config}  (open with: ns-viewer --load-config {config})")
         print(f"[demo] done in {time.time() - started:.0f} s")
-
-
-def _run(command: List[str]) -> None:
-    """Run a command of this environment, with its bin folder (ns-*, ffmpeg) first on PATH and without
-    nerfstudio's import-time deprecation warnings."""
-    bin_dir = Path(sys.executable).parent
-    print(f"[demo] $ {' '.join(command)}", flush=True)
-    warning_filters = [os.environ.get("PYTHONWARNINGS", ""), pythonwarnings()]
-    env = {
-        **os.environ,
-        "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
-        "PYTHONWARNINGS": ",".join(filter(None, warning_filters)),
-    }
-    subprocess.run([str(bin_dir / command[0]), *command[1:]], check=True, env=env)
 
 
 def entrypoint() -> None:
