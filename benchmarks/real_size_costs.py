@@ -1,0 +1,603 @@
+"""What a scene costs at the datasets' real sizes (issue 14, item 4): disk of the frame and SAM caches, peak host
+memory and time per iteration while training, render speed.
+
+    nice -n 10 .venv/bin/python benchmarks/real_size_costs.py --results benchmarks/results
+    nice -n 10 .venv/bin/python benchmarks/real_size_costs.py --only disk --results benchmarks/results  # disk alone
+    nice -n 10 .venv/bin/python benchmarks/real_size_costs.py --only sam --results benchmarks/results   # SAM cache alone
+    git show HEAD:gear_nerfstudio/sam/feature_cache.py > /tmp/feature_cache_head.py   # an earlier format's row:
+    nice -n 10 .venv/bin/python benchmarks/real_size_costs.py --only sam --sam-cache-module /tmp/feature_cache_head.py
+
+The real sizes (``DATASETS``): Technicolor 16 cameras x 50 frames of 2048x1088 PNG; N3D 21 cameras x 300 frames of
+2704x2028 video trained at downscale 2 (1352x1014); Immersive 46 cameras x 50 frames of 2560x1920 fisheye video
+trained at downscale 2 (1280x960). The only real captures on this machine are small (``../shared/data/real``:
+panoptic_basketball, 16 cameras x 20 frames of 320x180 PNG; n3d_flame_steak_frame0, 21 cameras x 1 frame of 672x504
+video), so every measurement runs on real content upscaled (bicubic) to the real size.
+
+Disk (``--only disk``), per dataset and content:
+* Frame cache: the dataset's files at their distributed size (PNG frames, or an H.264 video written by the project's
+  ``write_video``), put through the plugin's own ``cache_image_frames`` / ``cache_video_frames`` at the training
+  size; measured: the bytes the cache folder takes on disk (``du``), per frame, and whether the frames are read in
+  place. Upscaled content has less fine detail than a real capture at that size, so it likely compresses better:
+  the table also gives the uncompressed RGB size of a frame.
+* SAM cache: ``SamFeatureCache.precompute`` with the built-in backend on cached frames at the training size;
+  measured: the bytes of each file on disk, and its format (the file's leading magic bytes), which names the rows.
+* Scene totals are computed: bytes per frame (or per file) x cameras x frames (the held-out camera's frames are
+  cached and encoded too).
+
+Training (``--only train``), per dataset size: the panoptic capture in the Technicolor layout, its frames upscaled to
+the dataset's training size (intrinsics scaled to match), all 16 cameras, a few frames (``--frame-counts``; every
+count for ``--frame-check`` datasets, the first for the others), trained by the real ``ns-train`` on the CPU for
+``--iterations`` iterations (gear updates off unless ``--gear-updates``: a preset iteration takes about a minute on
+a loaded 2-CPU machine, and an update needs at least 13 iterations). Measured: peak RSS of the training process
+(``ru_maxrss`` from ``os.wait4``; also its value when ``Trainer.train`` starts, i.e. after loading, caching and SAM
+encoding); each iteration's time (``Trainer.train_iteration``: batch, forward, backward, optimizer; the first one
+also loads the datamanager's 40 images); then, in a second process from the last checkpoint, the render time of
+the held-out camera's (10) first frame at 1/``--render-divisor`` of the training size. Computed: the model's
+parameter bytes at the real frame count, from the parameter count of the preset's model built for that many frames.
+
+Records accumulate in ``<output>/records.json`` (disk rows per SAM cache format, training rows per dataset, method
+and frames); every invocation rewrites ``<output>/real_size_costs.md`` (and ``<results>/real_size_costs.md``) from
+them, after every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import datetime
+import importlib
+import importlib.util
+import json
+import os
+import resource
+import shlex
+import shutil
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+from PIL import Image
+
+from environment import command_environment
+from speed_accuracy import REAL, machine_description
+
+TRAIN_CHILD = "_train-child"
+RENDER_CHILD = "_render-child"
+"""First argument of the child processes that train (timing hooks) and render (from the checkpoint)."""
+
+
+@dataclass(frozen=True)
+class Dataset:
+    name: str
+    cameras: int
+    frames: int
+    source_size: Tuple[int, int]
+    """(width, height) of the distributed files."""
+    train_size: Tuple[int, int]
+    """(width, height) trained on (the published downscale)."""
+    files: str
+    """'png' (frames read by cache_image_frames) or 'video' (decoded by cache_video_frames)."""
+
+
+DATASETS: Dict[str, Dataset] = {
+    d.name: d
+    for d in (
+        Dataset("Technicolor", 16, 50, (2048, 1088), (2048, 1088), "png"),
+        Dataset("N3D", 21, 300, (2704, 2028), (1352, 1014), "video"),
+        Dataset("Immersive", 46, 50, (2560, 1920), (1280, 960), "video"),
+    )
+}
+
+PANOPTIC = REAL / "panoptic_basketball"
+PANOPTIC_SIZE = (320, 180)
+
+
+def upscaled(image: Image.Image, size: Tuple[int, int]) -> np.ndarray:
+    return np.asarray(image.convert("RGB").resize(size, Image.Resampling.BICUBIC))
+
+
+def real_content() -> Dict[str, List[Image.Image]]:
+    """Frame 0 of every camera of the two real captures."""
+    import av
+
+    n3d = []
+    for video in sorted((REAL / "n3d_flame_steak_frame0").glob("cam*.mp4")):
+        with av.open(str(video)) as container:
+            n3d.append(next(container.decode(video=0)).to_image())
+    panoptic = [Image.open(p) for p in sorted(PANOPTIC.glob("Basketball_undist_00000_*.png"))]
+    return {"panoptic_basketball (16 cameras)": panoptic, "n3d_flame_steak (21 cameras)": n3d}
+
+
+def disk_bytes(folder: Path) -> int:
+    """Bytes a folder takes on disk (allocated blocks of its files and sub-folders, as ``du``)."""
+    return sum(p.lstat().st_blocks * 512 for p in folder.rglob("*"))
+
+
+def content_folder(work: Path, dataset: Dataset, content: str) -> Path:
+    return work / "disk" / dataset.name / content.split()[0]
+
+
+def measure_frames(dataset: Dataset, content: str, images: Sequence[Image.Image], work: Path) -> Dict[str, Any]:
+    """The frame cache of one dataset's real size on upscaled real content (see the module docstring)."""
+    from gear_nerfstudio.data.frame_cache import cache_image_frames, cache_video_frames
+    from gear_nerfstudio.tools.video import write_video
+
+    folder = content_folder(work, dataset, content)
+    shutil.rmtree(folder, ignore_errors=True)
+    frame_cache = folder / "frame-cache"
+    frame_cache.mkdir(parents=True)
+    big = [upscaled(image, dataset.source_size) for image in images]
+    if dataset.files == "video":
+        video = folder / "source.mp4"
+        write_video(video, big, fps=30)
+        started = time.perf_counter()
+        cache_video_frames([video], list(range(len(big))), [dataset.train_size], frame_cache)
+        in_place = False
+    else:
+        sources = [folder / f"frame{i:02d}.png" for i in range(len(big))]
+        for rgb, path in zip(big, sources):
+            Image.fromarray(rgb).save(path)
+        started = time.perf_counter()
+        cached = cache_image_frames([[p] for p in sources], [0], [dataset.train_size] * len(big), frame_cache)
+        in_place = [row[0] for row in cached] == sources
+    return {
+        "dataset": dataset.name,
+        "content": content,
+        "frames_measured": len(big),
+        "in_place": in_place,
+        "frame_cache_bytes_per_frame": disk_bytes(frame_cache) / len(big),
+        "frame_cache_seconds_per_frame": (time.perf_counter() - started) / len(big),
+    }
+
+
+def training_frames(work: Path, dataset: Dataset, content: str) -> List[Path]:
+    """The frames at the training size that `measure_frames` left: the cached PNGs, or the sources read in place."""
+    folder = content_folder(work, dataset, content)
+    frames = sorted((folder / "frame-cache").rglob("*.png") if dataset.files == "video" else folder.glob("frame*.png"))
+    if not frames:
+        raise FileNotFoundError(f"{folder}: no frames of {dataset.name} / {content}; run the disk part first")
+    return frames
+
+
+def feature_cache_module(path: Optional[Path]) -> ModuleType:
+    """The SAM feature cache module: the package's, or one from a file (e.g. an earlier version from git)."""
+    if path is None:
+        return importlib.import_module("gear_nerfstudio.sam.feature_cache")
+    spec = importlib.util.spec_from_file_location("feature_cache_under_test", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def measure_sam(frames: Sequence[Path], folder: Path, module: ModuleType, count: int) -> Dict[str, Any]:
+    """SAM cache files of the first `count` frames, written by `module`'s SamFeatureCache with the built-in backend."""
+    from gear_nerfstudio.sam.config import BuiltinSamConfig
+
+    shutil.rmtree(folder, ignore_errors=True)
+    encoded = list(frames[:count])
+    started = time.perf_counter()
+    module.SamFeatureCache(BuiltinSamConfig().setup(), folder, encoded).precompute()
+    seconds = (time.perf_counter() - started) / len(encoded)
+    files = [p for p in folder.rglob("*") if p.is_file()]
+    if len(files) != len(encoded):
+        raise RuntimeError(f"{folder}: expected {len(encoded)} cache files, found {len(files)}")
+    with open(files[0], "rb") as handle:
+        sam_format = handle.read(len(module.MAGIC)).decode("ascii", "replace")
+    return {
+        "sam_format": sam_format,
+        "sam_files_measured": len(files),
+        "sam_bytes_per_file": sum(p.lstat().st_blocks * 512 for p in files) / len(files),
+        "sam_seconds_per_image": seconds,
+    }
+
+
+def write_panoptic_scene(folder: Path, size: Tuple[int, int], frames: int) -> Path:
+    """The panoptic capture's first `frames` frames in the Technicolor layout, upscaled to `size` (intrinsics scaled:
+    f and cu by the horizontal factor, cv by the vertical one, ar by their ratio). Kept when already written."""
+    camera_file = folder / "cameras_parameters.txt"
+    if camera_file.is_file():
+        return folder
+    folder.mkdir(parents=True, exist_ok=True)
+    sx, sy = size[0] / PANOPTIC_SIZE[0], size[1] / PANOPTIC_SIZE[1]
+    for frame in range(frames):
+        for path in sorted(PANOPTIC.glob(f"Basketball_undist_{frame:05d}_*.png")):
+            Image.fromarray(upscaled(Image.open(path), size)).save(folder / path.name)
+    header, *rows = (PANOPTIC / "cameras_parameters.txt").read_text().splitlines()
+    lines = [header]
+    for row in rows:
+        f, cu, cv, ar, *rest = row.split()
+        scaled = [float(f) * sx, (float(cu) + 0.5) * sx - 0.5, (float(cv) + 0.5) * sy - 0.5, float(ar) * sy / sx]
+        lines.append(" ".join([*(f"{v:.7g}" for v in scaled), *rest]))
+    camera_file.write_text("\n".join(lines) + "\n")  # last: its presence marks a complete scene
+    return folder
+
+
+def parameter_bytes(method: str, frames: int) -> int:
+    """Bytes of the parameters of `method`'s model built for a video of `frames` frames."""
+    import torch
+    from nerfstudio.configs.method_configs import all_methods
+    from nerfstudio.data.scene_box import SceneBox
+
+    model = copy.deepcopy(all_methods[method].pipeline.model).setup(
+        scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
+        num_train_data=1,
+        metadata={"num_frames": frames, "near": 0.1, "far": 2.0, "unbounded": False},
+    )
+    return sum(p.numel() * p.element_size() for p in model.parameters())
+
+
+def train_and_render(args: argparse.Namespace, dataset: Dataset, method: str, frames: int) -> Dict[str, Any]:
+    """One ns-train run (child process with timing hooks), then the render timing (another child)."""
+    from gear_nerfstudio.method_configs.gear_nerf import schedule_options
+
+    w, h = dataset.train_size
+    scene = write_panoptic_scene(args.output / "scenes" / f"{w}x{h}-{frames}f", dataset.train_size, frames)
+    name = f"{dataset.name}-{frames}f"
+    run_dir = args.output / "runs" / name / method / "run"
+    shutil.rmtree(run_dir, ignore_errors=True)
+    command = [
+        method, "--output-dir", str(args.output / "runs"), "--experiment-name", name, "--timestamp", "run",
+        "--max-num-iterations", str(args.iterations),
+        *(schedule_options(args.iterations) if args.gear_updates else ["--pipeline.gear-updates.enabled", "False"]),
+        "--steps-per-save", str(args.iterations), "--machine.device-type", "cpu", "--vis", "tensorboard",
+        "--steps-per-eval-batch", "0", "--steps-per-eval-image", "0", "--steps-per-eval-all-images", "0",
+        "--pipeline.datamanager.sam-cache-dir", str(args.output / "sam-cache"),
+        "technicolor-data", "--data", str(scene), "--near", "0.3", "--far", "7",
+        "--cache-dir", str(args.output / "frame-cache"),
+    ]  # fmt: skip
+    (args.output / "runs").mkdir(parents=True, exist_ok=True)
+    timing_path = args.output / "runs" / f"{name}-{method}.json"
+    log_path = args.output / "runs" / f"{name}-{method}.log"
+    print(f"[real_size_costs] {name} {method}: ns-train {shlex.join(command)}", flush=True)
+    with open(log_path, "w") as log:
+        child = subprocess.Popen([sys.executable, __file__, TRAIN_CHILD, str(timing_path), *command], stdout=log,
+                                 stderr=subprocess.STDOUT, env=command_environment())
+        _, status, usage = os.wait4(child.pid, 0)
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise RuntimeError(f"ns-train failed for {name} {method}: see {log_path}")
+    timing = json.loads(timing_path.read_text())
+    render_path = args.output / "runs" / f"{name}-{method}-render.json"
+    with open(log_path, "a") as log:
+        subprocess.run([sys.executable, __file__, RENDER_CHILD, str(run_dir / "config.yml"), str(render_path),
+                        str(args.render_divisor), str(args.render_repeats)], stdout=log, stderr=subprocess.STDOUT,
+                       env=command_environment(), check=True)
+    render = json.loads(render_path.read_text())
+    iterations = timing["iteration_seconds"]
+    record = {
+        "dataset": dataset.name,
+        "method": method,
+        "frames": frames,
+        "images": 16 * frames,
+        "iterations": args.iterations,
+        "command": ["ns-train", *command],
+        "peak_rss_bytes": usage.ru_maxrss * 1024,  # Linux: KiB
+        "rss_when_training_starts_bytes": timing["max_rss_before_training_bytes"],
+        "setup_seconds": timing["setup_seconds"],
+        "first_iteration_seconds": iterations[0],
+        "median_iteration_seconds": statistics.median(iterations[args.warmup :]),
+        "timed_iterations": len(iterations[args.warmup :]),
+        "gear_updates": timing["gear_updates"],
+        "render": render,
+        "parameter_bytes": parameter_bytes(method, frames),
+        "parameter_bytes_at_real_frames": parameter_bytes(method, dataset.frames),
+    }
+    print(f"[real_size_costs] {name} {method}: peak RSS {record['peak_rss_bytes'] / 2**20:.0f} MiB, "
+          f"{record['median_iteration_seconds']:.2f} s / iteration, render {render['seconds']}", flush=True)
+    return record
+
+
+def train_child(timing_path: Path, arguments: List[str]) -> None:
+    """Child process: nerfstudio's ns-train, timing every ``Trainer.train_iteration`` and recording the set-up time
+    and the peak RSS so far when ``Trainer.train`` starts."""
+    from nerfstudio.engine.trainer import Trainer
+    from nerfstudio.scripts.train import entrypoint
+
+    started = time.perf_counter()
+    timing: Dict[str, Any] = {"iteration_seconds": []}
+    original_train, original_iteration = Trainer.train, Trainer.train_iteration
+
+    def timed_iteration(self, step: int):
+        entered = time.perf_counter()
+        result = original_iteration(self, step)
+        timing["iteration_seconds"].append(time.perf_counter() - entered)
+        return result
+
+    def timed_train(self) -> None:
+        timing["setup_seconds"] = time.perf_counter() - started
+        timing["max_rss_before_training_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+        original_train(self)
+        timing["gear_updates"] = int(self.pipeline.gear_update_state.num_updates)
+        timing_path.write_text(json.dumps(timing))
+
+    Trainer.train, Trainer.train_iteration = timed_train, timed_iteration
+    sys.argv = ["ns-train", *arguments]
+    entrypoint()
+
+
+def render_child(config_path: Path, result_path: Path, divisor: int, repeats: int) -> None:
+    """Child process: load the run's last checkpoint and time `repeats` full renders of the held-out camera's first
+    frame at 1/divisor of its size."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
+    camera = pipeline.datamanager.eval_dataset.cameras[0:1]
+    camera.rescale_output_resolution(1.0 / divisor)
+    seconds = []
+    for _ in range(repeats):
+        entered = time.perf_counter()
+        outputs = pipeline.model.get_outputs_for_camera(camera)
+        seconds.append(time.perf_counter() - entered)
+    result = {
+        "width": int(camera.width), "height": int(camera.height), "seconds": seconds,
+        "samples_per_ray": float(outputs["num_samples"].float().mean()),
+    }
+    result_path.write_text(json.dumps(result))
+
+
+class LoadSampler:
+    """The 1-minute load average, sampled every `period` seconds in a background thread."""
+
+    def __init__(self, period: float = 15.0) -> None:
+        self.samples = [os.getloadavg()[0]]
+        threading.Thread(target=self.run, args=(period,), daemon=True).start()  # ends with the process
+
+    def run(self, period: float) -> None:
+        while True:
+            time.sleep(period)
+            self.samples.append(os.getloadavg()[0])
+
+    def summary(self) -> Dict[str, float]:
+        return {"min": min(self.samples), "mean": statistics.fmean(self.samples), "max": max(self.samples)}
+
+
+def mib(value: float) -> str:
+    return f"{value / 2**20:,.1f} MiB"
+
+
+def size(value: float) -> str:
+    """Bytes in the largest binary unit that keeps the number at least 1."""
+    for unit, power in (("GiB", 30), ("MiB", 20), ("KiB", 10)):
+        if value >= 2**power:
+            return f"{value / 2**power:,.2f} {unit}"
+    return f"{value:.0f} B"
+
+
+def disk_table(records: List[Dict[str, Any]]) -> List[str]:
+    rows = [
+        "| dataset (cameras x frames, training size) | content (upscaled) | SAM cache format | frame cache: frames read in place? "
+        "| frame cache / frame **(measured)** | uncompressed RGB / frame (computed) | frame cache / scene (computed) "
+        "| SAM file **(measured)** | SAM cache / scene (computed) | both caches / scene (computed) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        d = DATASETS[r["dataset"]]
+        count = d.cameras * d.frames
+        frames = r["frame_cache_bytes_per_frame"] * count
+        sam = r["sam_bytes_per_file"] * count
+        rows.append(
+            f"| {d.name} ({d.cameras} x {d.frames} = {count}, {d.train_size[0]}x{d.train_size[1]}) | {r['content']} "
+            f"| `{r['sam_format']}` | {'yes (empty check markers only)' if r['in_place'] else 'no: PNG copies'} "
+            f"| {size(r['frame_cache_bytes_per_frame'])} | {size(d.train_size[0] * d.train_size[1] * 3)} "
+            f"| {size(frames)} | {size(r['sam_bytes_per_file'])} | {size(sam)} | {size(frames + sam)} |"
+        )
+    return rows
+
+
+def setup_time_table(records: List[Dict[str, Any]]) -> List[str]:
+    rows = [
+        "| dataset | content | SAM cache format | frame cache s / frame **(measured)** | SAM encode s / image "
+        "**(measured)** | frame cache + SAM encode, whole scene (computed) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        d = DATASETS[r["dataset"]]
+        total = (r["frame_cache_seconds_per_frame"] + r["sam_seconds_per_image"]) * d.cameras * d.frames
+        rows.append(
+            f"| {d.name} | {r['content']} | `{r['sam_format']}` | {r['frame_cache_seconds_per_frame']:.2f} "
+            f"| {r['sam_seconds_per_image']:.2f} | {total / 60:.0f} min |"
+        )
+    return rows
+
+
+def train_table(records: List[Dict[str, Any]]) -> List[str]:
+    rows = [
+        "| training size (dataset) | method | frames (images) | peak RSS **(measured)** | RSS peak before the "
+        "training loop **(measured)** | s / iteration, median **(measured)** | first iteration **(measured)** "
+        "| s from ns-train's start (after imports) to the training loop **(measured)** | gear updates run | held-out render: size, s / frame, FPS **(measured)** "
+        "| samples / ray | parameters at these frames **(measured)** | parameters at the real frame count "
+        "**(measured, model built)** | training memory added at the real frame count, at most (computed) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        d = DATASETS[r["dataset"]]
+        render = r["render"]
+        seconds = statistics.median(render["seconds"])
+        rows.append(
+            f"| {d.train_size[0]}x{d.train_size[1]} ({d.name}) | {r['method']} | {r['frames']} ({r['images']}) "
+            f"| {mib(r['peak_rss_bytes'])} | {mib(r['rss_when_training_starts_bytes'])} "
+            f"| {r['median_iteration_seconds']:.2f} (of {r['timed_iterations']}) | {r['first_iteration_seconds']:.1f} s "
+            f"| {r['setup_seconds']:.0f} | {r['gear_updates']} | {render['width']}x{render['height']}, {seconds:.1f} s, "
+            f"{1 / seconds:.2f} | {render['samples_per_ray']:.1f} | {mib(r['parameter_bytes'])} "
+            f"| {mib(r['parameter_bytes_at_real_frames'])} ({d.frames} frames) "
+            f"| {mib(4 * (r['parameter_bytes_at_real_frames'] - r['parameter_bytes']))} |"
+        )
+    return rows
+
+
+INTRO = """Every number below comes from one of three kinds, marked in the column headers: **measured** on this machine
+by the plugin's own code (real files written and read, real `ns-train` runs); *computed* from measurements (a
+measured size per frame or per file times the scene's cameras x frames, or parameter bytes times a factor); and, at
+the end, what is *not measured*. The real captures on this machine are small, so the content of every image is real
+(CMU Panoptic basketball, N3D flame_steak frame 0) but upscaled (bicubic) to each dataset's real size."""
+
+DISK_NOTES = """Frame cache: the dataset's files at their distributed size (Technicolor: PNG frames at 2048x1088; N3D
+and Immersive: one H.264 video, written by the project's `write_video`, of frame 0 of every camera of the capture,
+at 2704x2028 / 2560x1920) put through `cache_image_frames` / `cache_video_frames` at the training size; the bytes
+the cache folder takes on disk (`du`, folders included), divided by the frames. Upscaled content has less fine
+detail and noise than a real capture at that size, so real frames likely take more than measured here, at most about
+their uncompressed size (given for comparison). SAM cache: `SamFeatureCache.precompute` with the built-in backend on
+frames at the training size; the file's format is its leading magic bytes. Scene totals count every camera, the
+held-out one included (its frames are cached and encoded too)."""
+
+TRAIN_NOTES = """Each run: the panoptic capture (real, 16 cameras, 15 trained, held-out camera 10) in the Technicolor
+layout, upscaled to the dataset's training size, the first few frames, `ns-train` on the CPU for a few iterations
+(gear updates off, unless the column says they ran: a preset iteration takes about a minute on this loaded machine,
+and an update needs at least 13 iterations). Only the image size is the dataset's: the camera
+count, camera model (Immersive is fisheye) and scene bounds are the capture's. The datamanager holds 40 training
+images (and every evaluation image, at most 8) in memory at a time whatever the video length, so every run here
+already holds the 40 images a 300-frame run holds. Peak RSS: `ru_maxrss` of the training process (`os.wait4`);
+"before the training loop": its peak when `Trainer.train` starts (after reading, caching, SAM encoding and building
+the model); the time to that point includes building the frame and SAM caches unless an earlier run with the same
+scene had built them. Iteration time: `Trainer.train_iteration` (ray batch with SAM targets, forward, backward, optimizer
+step), the median after the first iterations; the first iteration also loads the datamanager's 40 images (again
+every 100 iterations); gear updates run between iterations and are not in it. Render: the held-out camera's first
+frame, from the run's checkpoint, in a second process, at the size given (the first render is timed too); the
+model has trained for only a few iterations, so its gear levels, and so its samples per ray, are not those of a
+trained model. Parameters: the bytes of the preset's model built for the run's frames and for the dataset's real
+frame count (the space-time planes of every gear above 1, and the proposal networks' time axes, grow with the
+frames); the growth of training memory with the frames is *computed* from them: at most 4 x the parameter bytes
+added (parameters, gradients and Adam's two moments; Adam keeps no state for the planes of gears never used)."""
+
+NOT_MEASURED = """- Memory and time of gear updates at these sizes, in runs where none ran (loss maps at 128 pixels, up to 8 frames
+  of a camera loaded for the motion gate, Eq 11 steps on at most 8,192 points per set).
+- Frame-cache sizes on a real capture at full size (only upscaled real content; see above).
+- Peak RSS at the real frame counts (50 / 300 frames): only the growth of the model's parameters with the frames is
+  computed; the runs hold as many images as a long run does.
+- Memory that builds up over a long run: the SAM cache's memory maps (at most 256 files open, their pages counted in
+  RSS once read), planes of upper gears coming into use after updates, evaluation during training (off here).
+- Iteration time of the Immersive fisheye / unbounded setting and N3D's forward-facing rig: the runs use the panoptic
+  dome's cameras at those image sizes.
+- Any of this on a GPU."""
+
+
+def frame_growth(records: List[Dict[str, Any]]) -> List[str]:
+    """Lines comparing runs of one dataset size and method at different frame counts."""
+    lines = []
+    for name in DATASETS:
+        for method in sorted({r["method"] for r in records}):
+            runs = sorted((r for r in records if (r["dataset"], r["method"]) == (name, method)), key=lambda r: r["frames"])
+            if len(runs) < 2:
+                continue
+            low, high = runs[0], runs[-1]
+            lines.append(
+                f"- {name} size, {method}: peak RSS {mib(low['peak_rss_bytes'])} at {low['frames']} frames, "
+                f"{mib(high['peak_rss_bytes'])} at {high['frames']} frames (**measured**, difference "
+                f"{(high['peak_rss_bytes'] - low['peak_rss_bytes']) / 2**20:+,.0f} MiB); parameters "
+                f"{(high['parameter_bytes'] - low['parameter_bytes']) / 2**20:+,.1f} MiB, i.e. at most "
+                f"{4 * (high['parameter_bytes'] - low['parameter_bytes']) / 2**20:+,.0f} MiB of training memory "
+                f"(*computed*)."
+            )
+    return lines
+
+
+def report(records: Dict[str, Any]) -> str:
+    lines = ["# Real-size costs (issue 14, item 4)", "", INTRO, "", "Runs, latest first (each replaces the rows it "
+             "measures; disk rows are kept per SAM cache format):", ""]
+    for run in records["invocations"]:
+        lines.append(f"- `{run['command']}` (part: {', '.join(run['parts'])}), {run['date']}; 1-minute load average "
+                     f"during the run min {run['load']['min']:.2f}, mean {run['load']['mean']:.2f}, max "
+                     f"{run['load']['max']:.2f} on 2 CPUs (the machine is shared with other work, so times are "
+                     f"slower than on an idle machine); {run['machine']}")
+    lines += ["", "## Disk", "", DISK_NOTES, "", *disk_table(records["disk"]), "", "## Set-up time (cache building)",
+              "", "Wall-clock seconds on the shared machine (see the load above).", "",
+              *setup_time_table(records["disk"]), "", "## Training memory and speed, rendering", "", TRAIN_NOTES, "",
+              *train_table(records["train"]), "", *frame_growth(records["train"]), "", "## Not measured", "",
+              NOT_MEASURED, ""]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--output", type=Path, default=Path("outputs/real_size_costs"),
+                        help="working folder: scenes, caches, runs, records.json, real_size_costs.md")
+    parser.add_argument("--results", type=Path, default=None, help="also write real_size_costs.md here")
+    parser.add_argument("--only", choices=("disk", "sam", "train"), default=None,
+                        help="run one part ('sam': the SAM cache alone, on the frames of an earlier disk run); the "
+                             "records of the other parts already in --output are kept in the report")
+    parser.add_argument("--sam-cache-module", type=Path, default=None,
+                        help="measure the SAM cache of this feature_cache.py (e.g. an earlier version: git show "
+                             "<commit>:gear_nerfstudio/sam/feature_cache.py > file) instead of the package's")
+    parser.add_argument("--sam-images", type=int, default=2, help="frames per dataset and content encoded for SAM")
+    parser.add_argument("--datasets", nargs="+", choices=tuple(DATASETS), default=list(DATASETS))
+    parser.add_argument("--methods", nargs="+", default=["gear-nerf", "gear-nerf-baseline"])
+    parser.add_argument("--iterations", type=int, default=4, help="iterations per run")
+    parser.add_argument("--gear-updates", action="store_true",
+                        help="run gear updates, with the schedule scaled to the iterations (needs --iterations >= 13)")
+    parser.add_argument("--warmup", type=int, default=1, help="first iterations left out of the median")
+    parser.add_argument("--frame-counts", nargs="+", type=int, default=[3, 8],
+                        help="frames of the training scenes (the panoptic capture has 20)")
+    parser.add_argument("--frame-check", nargs="*", default=["N3D"],
+                        help="datasets trained (with the first method) at every frame count; the others at the first")
+    parser.add_argument("--render-divisor", type=int, default=16)
+    parser.add_argument("--render-repeats", type=int, default=1)
+    args = parser.parse_args()
+
+    records_path = args.output / "records.json"
+    records = json.loads(records_path.read_text()) if records_path.is_file() else {"invocations": [], "disk": [],
+                                                                                    "train": []}
+    parts = ["disk", "train"] if args.only is None else [args.only]
+    args.output.mkdir(parents=True, exist_ok=True)
+    load = LoadSampler()
+    if "disk" in parts or "sam" in parts:
+        module = feature_cache_module(args.sam_cache_module)
+        content = real_content()
+        measured = []
+        for name in args.datasets:
+            dataset = DATASETS[name]
+            for source, images in content.items():
+                if "disk" in parts:
+                    frames = measure_frames(dataset, source, images, args.output)
+                else:
+                    frames = next(r for r in records["disk"] if (r["dataset"], r["content"]) == (name, source))
+                    frames = {k: v for k, v in frames.items() if not k.startswith("sam_")}
+                folder = content_folder(args.output, dataset, source) / "sam-cache"
+                sam = measure_sam(training_frames(args.output, dataset, source), folder, module, args.sam_images)
+                measured.append({**frames, **sam, "sam_cache_module": str(args.sam_cache_module or module.__name__)})
+                print(f"[real_size_costs] disk: {measured[-1]}", flush=True)
+        keys = {(r["dataset"], r["content"], r["sam_format"]) for r in measured}
+        records["disk"] = [r for r in records["disk"] if (r["dataset"], r["content"], r["sam_format"]) not in keys]
+        records["disk"] = sorted(records["disk"] + measured, key=lambda r: (list(DATASETS).index(r["dataset"]),
+                                                                            r["content"], r["sam_format"]))
+    invocation = {"command": shlex.join(["nice", "-n", str(os.nice(0)), ".venv/bin/python", *sys.argv]),
+                  "parts": parts, "machine": machine_description("cpu")}
+    records["invocations"].insert(0, invocation)
+
+    def save() -> None:
+        """Records and report as they stand (after every run, so that a stopped benchmark keeps what it measured)."""
+        invocation.update(date=datetime.datetime.now().strftime("%Y-%m-%d %H:%M"), load=load.summary())
+        records_path.write_text(json.dumps(records, indent=1))
+        for folder in (args.output, *([args.results] if args.results else [])):
+            (folder / "real_size_costs.md").write_text(report(records))
+
+    save()
+    if "train" in parts:
+        runs = [
+            (name, method, frames)
+            for method in args.methods
+            for name in args.datasets
+            for frames in (args.frame_counts if name in args.frame_check and method == args.methods[0]
+                           else args.frame_counts[:1])
+        ]
+        for name, method, frames in runs:
+            record = train_and_render(args, DATASETS[name], method, frames)
+            records["train"] = [r for r in records["train"] if (r["dataset"], r["method"], r["frames"]) != (name, method, frames)]
+            records["train"] = sorted(records["train"] + [record], key=lambda r: (
+                r["method"], list(DATASETS).index(r["dataset"]), r["frames"]))
+            save()
+    save()
+    print(report(records))
+
+if __name__ == "__main__":
+    if len(sys.argv) > 2 and sys.argv[1] == TRAIN_CHILD:
+        train_child(Path(sys.argv[2]), sys.argv[3:])
+    elif len(sys.argv) > 2 and sys.argv[1] == RENDER_CHILD:
+        render_child(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5]))
+    else:
+        main()
