@@ -26,8 +26,8 @@ def run_local(plan: ChunkPlan) -> List[str]:
 
 def run_ray(plan: ChunkPlan, address: Optional[str]) -> List[str]:
     """The same work as Ray tasks: the cameras' preparations in parallel, then every chunk as a task asking
-    for its run's GPUs (``--machine.num-devices``, default 1) when the cluster has GPUs (one CPU otherwise). ``address``: a running cluster ("auto" or
-    "host:port"); None starts a Ray instance on this machine."""
+    for its run's GPUs (``--machine.num-devices``, default 1) when the cluster has GPUs (one CPU otherwise).
+    ``address``: a running cluster ("auto" or "host:port"); None starts a Ray instance on this machine."""
     try:
         import ray
     except ImportError as err:

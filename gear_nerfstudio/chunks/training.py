@@ -105,27 +105,26 @@ def train_chunk(run: ChunkRun) -> str:
     launch = Path(run.output_dir) / config.experiment_name / "launch.yml"
     launch.parent.mkdir(parents=True, exist_ok=True)
     launch.write_text(yaml.dump(config), "utf8")
+    command = ["ns-train", config.method_name, "--load-config", str(launch)]
     try:
-        run_command(
-            ["ns-train", config.method_name, "--load-config", str(launch)], "chunks", env={"OMP_NUM_THREADS": str(run.threads)}
-        )
+        run_command(command, "chunks", env={"OMP_NUM_THREADS": str(run.threads)})
     except subprocess.CalledProcessError as err:
-        raise ChunkError(f"{launch}: ns-train of chunk {run.chunk.index} stopped with exit status {err.returncode} (its output is above)") from err
+        raise ChunkError(
+            f"{launch}: ns-train of chunk {run.chunk.index} stopped with exit status {err.returncode} (its output is above)"
+        ) from err
     return str(config.get_base_dir() / "config.yml")
 
 
-def prepare_camera(base_config: str, camera: int) -> int:
-    """Decode one camera's frames of the whole window into the frame cache and, for a training camera, encode
-    them into the SAM cache (Sec 4.2), so that no chunk waits for it; returns the number of frames."""
+def prepare_camera(base_config: str, camera: int) -> None:
+    """Decode one camera's frames of the whole window into the frame cache and encode them into the SAM cache
+    (Sec 4.2; the datamanager encodes the held-out camera's images too), so that no chunk waits for it."""
     config = yaml.load(base_config, Loader=yaml.Loader)
     parser = config.pipeline.datamanager.dataparser.setup()
     rig = parser.read_rig()
     frames = parser.window(rig)
     files = [path for path in parser.frame_files(rig, [camera], frames, parser.image_sizes(rig, [camera]))[0] if path]
-    held_out = config.pipeline.datamanager.dataparser.held_out_camera or parser.default_held_out
-    if rig.names[camera] != held_out and config.pipeline.datamanager.use_sam_features:
+    if config.pipeline.datamanager.use_sam_features:
         SamFeatureCache(config.pipeline.sam.setup(), config.pipeline.datamanager.sam_cache_dir, files).precompute()
-    return len(files)
 
 
 @dataclass
@@ -149,22 +148,18 @@ def plan_runs(train_args: Sequence[str], output_dir: Path, chunk_frames: int, ov
         ChunkRun(base_config, chunk, frames[chunk.first], str(output_dir.resolve()), torch_threads())
         for chunk in chunks
     ]
-    manifest = {
-        "ns_train_args": list(train_args),
-        "frame_numbers": frames,
-        "chunk_frames": chunk_frames,
-        "overlap": overlap,
-        "chunks": [
-            {**asdict(run.chunk), "frame_start": run.frame_start, "run": str(chunk_config(run).get_base_dir().relative_to(output_dir.resolve()))}
-            for run in runs
-        ],
-    }
+    settings = {"ns_train_args": list(train_args), "frame_numbers": frames, "chunk_frames": chunk_frames, "overlap": overlap}
+    folders = [chunk_config(run).get_base_dir().relative_to(output_dir.resolve()) for run in runs]
+    chunk_entries = [{**asdict(run.chunk), "frame_start": run.frame_start, "run": str(f)} for run, f in zip(runs, folders)]
+    manifest = {**settings, "chunks": chunk_entries}
     path = output_dir / MANIFEST
     if path.exists():
         previous = json.loads(path.read_text())
-        changed = [key for key in ("ns_train_args", "frame_numbers", "chunk_frames", "overlap") if previous.get(key) != manifest[key]]
+        changed = [key for key in settings if previous.get(key) != settings[key]]
         if changed:
-            raise ChunkError(f"{path}: this folder holds chunks of another command ({', '.join(changed)} differ); use another --output-dir")
+            raise ChunkError(
+                f"{path}: this folder holds chunks of another command ({', '.join(changed)} differ); use another --output-dir"
+            )
     output_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(manifest, indent=1))
     return ChunkPlan(runs, base_config, num_cameras, config.machine.num_devices)
@@ -182,7 +177,8 @@ def read_manifest(output_dir: Path) -> Dict[str, Any]:
     manifest["configs"] = [str(output_dir / c["run"] / "config.yml") for c in manifest["chunks"]]
     for entry in manifest["chunks"]:
         if latest_step(output_dir / entry["run"] / "nerfstudio_models") is None:
-            raise ChunkError(f"{output_dir / entry['run']}: chunk {entry['index']} has no checkpoint; run ns-gear-chunks train")
+            folder = output_dir / entry["run"]
+            raise ChunkError(f"{folder}: chunk {entry['index']} has no checkpoint; run ns-gear-chunks train")
     return manifest
 
 

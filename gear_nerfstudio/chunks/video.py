@@ -38,9 +38,8 @@ def render_at(pipeline, camera: Cameras, time: float) -> Tensor:
 class Blender:
     """Sums the weighted renders of each output frame until its weights reach 1."""
 
-    def __init__(self, count: int):
+    def __init__(self) -> None:
         self.pending: Dict[int, Tuple[Tensor, float]] = {}
-        self.remaining = count
 
     def add(self, frame: int, weight: float, rgb: Tensor) -> Optional[Tensor]:
         """Add one chunk's render; returns the blended frame once every owner has added its render."""
@@ -49,7 +48,6 @@ class Blender:
         if weights < 1.0 - 1e-6:
             self.pending[frame] = (total, weights)
             return None
-        self.remaining -= 1
         return total
 
 
@@ -60,7 +58,7 @@ def blended_frames(
     frames come out as they are completed, not in path order."""
     times = cameras.times[:, 0].tolist()
     frame_owners = [owners(chunks, position(t, num_frames)) for t in times]
-    blender = Blender(len(times))
+    blender = Blender()
     for chunk, config in zip(chunks, configs):
         wanted = [(i, w, local) for i, found in enumerate(frame_owners) for c, w, local in found if c == chunk]
         if not wanted:
@@ -80,7 +78,7 @@ def write_png(rgb: Tensor, path: Path) -> None:
 def evaluate(configs: List[str], chunks: List[Chunk], num_frames: int, frame_numbers: List[int]) -> Dict:
     """PSNR / SSIM (and LPIPS when its weights are local) of the held-out camera: per chunk (its own renders of
     its frames, as ns-eval of that chunk gives), per frame and overall (the blended renders, each frame once)."""
-    blender = Blender(num_frames)
+    blender = Blender()
     per_chunk: List[Dict] = []
     per_frame: Dict[int, Dict[str, float]] = {}
     for chunk, config in zip(chunks, configs):
