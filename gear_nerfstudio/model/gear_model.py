@@ -343,7 +343,7 @@ class GearNeRFModel(Model):
             # (several GPUs) a plane that only the loss would use (a gear in use but absent from this process's
             # batch) is not reached from the forward's outputs, so DDP marks it unused, and the backward pass then
             # fails when its gradient arrives.
-            outputs["regularisers"] = self.field.regularisers()
+            outputs.update({f"regulariser_{name}": value for name, value in self.field.regularisers().items()})
         if ray_samples_list:
             weights_list.append(split.to_base(weights))
             ray_samples_list.append(base_samples)
@@ -435,10 +435,9 @@ class GearNeRFModel(Model):
             target = batch["sam_features"].to(self.device)
             loss_dict["sam_loss"] = config.sam_loss_mult * self.rgb_loss(target, outputs["sam"])
         if self.training:
-            regularisers = outputs["regularisers"]
-            loss_dict["plane_tv"] = config.plane_tv_mult * regularisers["plane_tv"]
-            loss_dict["l1_time_planes"] = config.l1_time_planes_mult * regularisers["l1_time_planes"]
-            loss_dict["time_smoothness"] = config.time_smoothness_mult * regularisers["time_smoothness"]
+            loss_dict["plane_tv"] = config.plane_tv_mult * outputs["regulariser_plane_tv"]
+            loss_dict["l1_time_planes"] = config.l1_time_planes_mult * outputs["regulariser_l1_time_planes"]
+            loss_dict["time_smoothness"] = config.time_smoothness_mult * outputs["regulariser_time_smoothness"]
             if "weights_list" in outputs:
                 proposal = [net.regularisers() for net in self.proposal_networks]
                 loss_dict["plane_tv_proposal"] = config.plane_tv_proposal_mult * sum(r["plane_tv"] for r in proposal)
