@@ -21,22 +21,23 @@ def world_size() -> int:
     return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
 
 
-def union(flags: Tensor) -> Tensor:
-    """Boolean flags set on any process (all-reduce max)."""
+def _reduce_flags(flags: Tensor, op: "dist.ReduceOp") -> Tensor:
+    """Boolean flags all-reduced with ``op`` (as uint8: gloo and NCCL reduce no bools)."""
     if world_size() == 1:
         return flags
     values = flags.to(torch.uint8)
-    dist.all_reduce(values, op=dist.ReduceOp.MAX)
+    dist.all_reduce(values, op=op)
     return values.bool()
+
+
+def union(flags: Tensor) -> Tensor:
+    """Boolean flags set on any process (all-reduce max)."""
+    return _reduce_flags(flags, dist.ReduceOp.MAX)
 
 
 def intersection(flags: Tensor) -> Tensor:
     """Boolean flags set on every process (all-reduce min)."""
-    if world_size() == 1:
-        return flags
-    values = flags.to(torch.uint8)
-    dist.all_reduce(values, op=dist.ReduceOp.MIN)
-    return values.bool()
+    return _reduce_flags(flags, dist.ReduceOp.MIN)
 
 
 def average(values: Tensor) -> Tensor:
