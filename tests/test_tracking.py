@@ -36,11 +36,11 @@ from gear_nerfstudio.tracking.click import (
     view_share,
 )
 from gear_nerfstudio.tracking.propagation import (
-    centred_box,
-    locate_object,
+    ObjectAppearance,
     mask_box,
-    object_features,
+    object_region,
     propagation_chains,
+    region_prompt,
     render_embedding,
     segment,
     track,
@@ -487,37 +487,54 @@ def test_box_and_propagation_order():
     assert propagation_chains(0.0, [0.6], 3) == ([0.5, 0.6], [])
 
 
-def test_locate_object_finds_the_inside_of_the_object_feature_region():
+def test_object_appearance_keeps_every_part_of_a_two_coloured_object():
+    """A two-coloured object (3x3 cells, its left column another colour) on a one-colour background: at
+    another time every one of its cells is an object cell, although its mean feature matches neither part;
+    the region overlapping a box's mask wins over a better-matching region elsewhere, and the re-prompt's
+    points lie in that region and its box is the region's."""
     # 16x12 image on an 8-cell grid: cells are 2x2 pixels; 6 rows x 8 columns are valid.
     features = np.zeros((4, 8, 8), dtype=np.float32)
     features[0, :6, :8] = 1.0  # background
     features[:, 1:4, 5:8] = 0.0
-    features[1, 1:4, 5:8] = 1.0  # the object: 3x3 cells, centre cell (2, 6)
-    features[1, 1, 5] = 0.9  # its closest-to-mean cell is not its centre
+    features[1, 1:4, 6:8] = 1.0  # the object's main colour
+    features[2, 1:4, 5] = 1.0  # its second colour (left column)
     embedding = Embedding(features=features, image_size=(12, 16))
     mask = np.zeros((12, 16), dtype=bool)
     mask[2:8, 10:16] = True
-    found = object_features(embedding, mask)
-    assert found is not None
-    assert locate_object(embedding, found) == (13.0, 5.0)  # centre of cell (row 2, col 6)
-    assert object_features(embedding, np.zeros_like(mask)) is None
-    assert object_features(embedding, np.ones_like(mask)) is None
-    background_only = Embedding(features=np.where(features[1:2] > 0, 0.0, features), image_size=(12, 16))
-    background_only.features[0, :6, :8] = 1.0
-    assert locate_object(background_only, found) is None
+    appearance = ObjectAppearance.of(embedding, mask)
+    assert appearance is not None and len(appearance.object) == 9
+    assert ObjectAppearance.of(embedding, np.zeros_like(mask)) is None
+    assert ObjectAppearance.of(embedding, np.ones_like(mask)) is None
 
-
-def test_centred_box_keeps_a_box_that_holds_the_point_and_moves_others_inside_the_image():
-    box = np.array([2.0, 2.0, 6.0, 5.0])
-    assert centred_box(box, (3.0, 4.0), (12, 16)).tolist() == [2.0, 2.0, 6.0, 5.0]
-    assert centred_box(box, (10.0, 8.0), (12, 16)).tolist() == [8.0, 6.5, 12.0, 9.5]
-    assert centred_box(box, (15.5, 11.5), (12, 16)).tolist() == [12.0, 9.0, 16.0, 12.0]
+    later = np.zeros_like(features)
+    later[0, :6, :8] = 1.0
+    later[:, 2:5, 0:3] = 0.0  # the object moved to rows 2-4, columns 0-2
+    later[1, 2:5, 1:3] = 1.0
+    later[2, 2:5, 0] = 1.0
+    later[:, 0, 6] = 0.0  # a one-cell copy of its main colour elsewhere
+    later[1, 0, 6] = 1.0
+    moved = Embedding(features=later, image_size=(12, 16))
+    cells, distance = appearance.cells(moved)
+    expected = np.zeros((6, 8), dtype=bool)
+    expected[2:5, 0:3] = True
+    expected[0, 6] = True
+    np.testing.assert_array_equal(cells, expected)
+    near = np.zeros((6, 8), dtype=bool)
+    near[2, 2] = True  # the box's mask touches the moved object
+    region = object_region(cells, distance, near)
+    np.testing.assert_array_equal(region, expected & (np.arange(8) < 3)[None])
+    points, box = region_prompt(region, moved)
+    assert box.tolist() == [0.0, 4.0, 6.0, 10.0]
+    assert points[0].tolist() == [3.0, 7.0]  # the deepest cell (3, 1) first
+    assert all(region[int(y // 2), int(x // 2)] for x, y in points)
+    assert object_region(np.zeros_like(cells), distance, near) is None
 
 
 def test_embedding_propagation_follows_a_fast_object_that_a_box_loses():
     """On the encoder features of ground-truth frames (no NeRF): the fast sphere moves further than its
-    own size per frame, so the paper's box propagation loses it; the embedding propagation finds it again.
-    The slow sphere stays in its box, so both propagations give the same masks."""
+    own size per frame, so the paper's box propagation loses it; the embedding propagation finds all of it
+    again (t-mIoU 0.45 before the object's appearance kept its parts, 0.78 now). The slow sphere
+    stays in its box, so both propagations give the same masks."""
     backend = BuiltinSamBackend()
     spec = SyntheticSpec(dataset="n3d", width=64, height=48, frames=6, cameras=1)
     scene, camera = SyntheticScene(), rig_for(spec)[0]
@@ -540,7 +557,7 @@ def test_embedding_propagation_follows_a_fast_object_that_a_box_loses():
             else:
                 assert located and all(m.prompt["from_time"] < m.time for m in located)
     assert results[FAST_SPHERE, "box"] < 0.2
-    assert results[FAST_SPHERE, "embedding"] > 0.45
+    assert results[FAST_SPHERE, "embedding"] > 0.7, results
     assert results[2, "box"] > 0.7 and results[2, "embedding"] == results[2, "box"]
     with pytest.raises(TrackingError, match="unknown propagation"):
         track(backend, embeddings.__getitem__, click, np.array([1]), 0.0, times, 6, "flow")

@@ -97,8 +97,8 @@ class TrackCommand:
     """Times in [0, 1] to track to; default: every frame of the trained window."""
     propagation: Propagation = "embedding"
     """Prompt at t +- 1: "box" (the mask's box, the paper) or "embedding" (ours: the same, but when the
-    box's mask does not look like the object's rendered feature, the object's best match in the frame
-    becomes a point prompt and the box moves onto it)."""
+    box's mask disagrees with the cells whose rendered features match the object's, points spread over
+    those cells and their box prompt again)."""
     min_accumulation: float = HIT_ACCUMULATION
     """A click ray whose accumulated density stays below this hits nothing (lower it for a model trained
     only briefly, whose density is still faint)."""

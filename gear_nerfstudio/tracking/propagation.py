@@ -5,13 +5,16 @@ The target view's SAM feature map is rendered from the 4D embedding (Eq 8) and d
 (`click.project_prompt`) as the prompt. Masks for novel time steps: the bounding box of the mask at time t
 prompts the decoder on the rendered features at the neighbouring frame t + 1 (or t - 1), frame by frame.
 
-Propagation "embedding" (ours, the default) checks each box result with the 4D embedding: the object's
-feature is the mean rendered SAM feature under the clicked-time mask. When the mask that the box gives at
-t + 1 has a mean feature closer to the background's than to the object's, the object has left the box;
-it is then looked up in the rendered features at t + 1 (`locate_object`: a point inside the cells closer
-to the object's feature than to the rest of the image), and that point prompts as a positive point with
-the box moved onto it. A box alone loses an object that moves further than its own size between frames;
-the paper's box-only propagation remains as "box".
+Propagation "embedding" (ours, the default) checks each box result with the 4D embedding. The object's
+appearance is the set of rendered SAM features of the cells under the clicked-time mask, against those of
+the rest of the view (`ObjectAppearance`); at t + 1 the cells nearer to an object feature than to any
+background feature form regions, and the region that overlaps the box's mask (else the best-matching one)
+is the object (`object_region`). When the box's mask and that region disagree (IoU of their cells below
+AGREEMENT), the decoder is prompted again with points spread over the region and the region's own box
+(`region_prompt`). A box alone loses an object that moves further than its own size between frames, and
+a box taken from a mask that covered only part of the object (one stripe of a striped ball) shrinks the
+next mask to that part, frame after frame; the region's points and box re-prompt the whole object. The
+paper's box-only propagation remains as "box".
 """
 
 from __future__ import annotations
@@ -27,13 +30,20 @@ from torch import Tensor
 
 from gear_nerfstudio.model.gear_model import evaluating
 from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, valid_grid
+from gear_nerfstudio.tracking.metrics import iou
 from gear_nerfstudio.tracking.click import TrackingError, check_time, image_size, single_camera
 
 if TYPE_CHECKING:
     from nerfstudio.models.base_model import Model
 
 Propagation = Literal["embedding", "box"]
-"""How a mask at t prompts t +- 1: its box, re-found by the object's embedding when lost (ours), or its box."""
+"""How a mask at t prompts t +- 1: its box, checked and re-prompted by the object's embedding (ours), or its box."""
+AGREEMENT = 0.5
+"""IoU of cells between the box's mask and the object's region below which the region re-prompts."""
+APPEARANCE_SAMPLES = 512
+"""Cells of the object, and of the background, kept as `ObjectAppearance` (evenly spaced)."""
+REGION_POINTS = 3
+"""Positive points spread over the object's region when it re-prompts."""
 
 
 @dataclass
@@ -137,54 +147,85 @@ def valid_cell_features(embedding: Embedding) -> np.ndarray:
     return embedding.features[:, :rows, :cols].reshape(embedding.features.shape[0], -1).T
 
 
-def object_features(embedding: Embedding, mask: np.ndarray) -> Optional[Tuple[np.ndarray, np.ndarray]]:
-    """Mean feature (C,) of the cells under a mask and of the other valid cells; None when either is empty."""
-    features = valid_cell_features(embedding)
-    inside = mask_cells(mask, embedding.grid_size).reshape(-1)
-    if inside.all() or not inside.any():
+def _sample(features: np.ndarray, count: int) -> np.ndarray:
+    """At most `count` rows of `features`, evenly spaced (deterministic)."""
+    if len(features) <= count:
+        return features
+    return features[np.linspace(0, len(features) - 1, count).astype(np.int64)]
+
+
+@dataclass
+class ObjectAppearance:
+    """The object's rendered SAM features at the clicked time and those of the rest of the view (each at
+    most APPEARANCE_SAMPLES cells): a cell at another time belongs to the object when its nearest object
+    feature is nearer than its nearest background feature. Every part of an object (each stripe of a
+    ball, a person's shirt and trousers) keeps its own features, which a mean would blur together."""
+
+    object: np.ndarray  # (N, C)
+    background: np.ndarray  # (M, C)
+
+    @staticmethod
+    def of(embedding: Embedding, mask: np.ndarray) -> Optional["ObjectAppearance"]:
+        """From the clicked-time embedding and mask; None when the mask holds no cell or every cell."""
+        features = valid_cell_features(embedding).astype(np.float64)
+        inside = mask_cells(mask, embedding.grid_size).reshape(-1)
+        if inside.all() or not inside.any():
+            return None
+        return ObjectAppearance(
+            _sample(features[inside], APPEARANCE_SAMPLES), _sample(features[~inside], APPEARANCE_SAMPLES)
+        )
+
+    def cells(self, embedding: Embedding) -> Tuple[np.ndarray, np.ndarray]:
+        """Object cells (rows, cols) bool of another embedding, and every cell's squared distance to its
+        nearest object feature."""
+        features = valid_cell_features(embedding).astype(np.float64)
+
+        def nearest(reference: np.ndarray) -> np.ndarray:
+            squared = (features**2).sum(1)[:, None] + (reference**2).sum(1)[None] - 2.0 * features @ reference.T
+            return squared.min(axis=1)
+
+        to_object = nearest(self.object)
+        shape = valid_grid(embedding.image_size, embedding.grid_size)
+        return (to_object < nearest(self.background)).reshape(shape), to_object.reshape(shape)
+
+
+def object_region(cells: np.ndarray, distance: np.ndarray, near: np.ndarray) -> Optional[np.ndarray]:
+    """The 8-connected region of object cells (rows, cols) that overlaps the cells `near` most (the box
+    prompt's mask); when none does, the region holding the best-matching cell. None without object cells."""
+    regions, count = ndimage.label(cells, structure=np.ones((3, 3)))
+    if count == 0:
         return None
-    return features[inside].mean(axis=0), features[~inside].mean(axis=0)
+    overlap = np.bincount(regions[near], minlength=count + 1)
+    overlap[0] = 0
+    if overlap.max() > 0:
+        return regions == int(np.argmax(overlap))
+    return regions == regions.reshape(-1)[int(np.argmin(np.where(cells, distance, np.inf)))]
 
 
-def holds_object(embedding: Embedding, mask: np.ndarray, features: Tuple[np.ndarray, np.ndarray]) -> bool:
-    """Whether a mask's mean feature is closer to the object's feature than to the background's."""
-    inside = object_features(embedding, mask)
-    if inside is None:
-        return False
-    obj, background = features
-    return float(np.square(inside[0] - obj).sum()) < float(np.square(inside[0] - background).sum())
-
-
-def locate_object(embedding: Embedding, features: Tuple[np.ndarray, np.ndarray]) -> Optional[Tuple[float, float]]:
-    """Pixel (x, y) inside the object at another time, from its feature: among the cells closer to the
-    object's feature than to the background's, take the 8-connected region holding the closest cell and
-    return its innermost cell's centre (furthest from the region's border). None when no cell is closer.
-    """
-    obj, background = features
-    rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
-    cells = valid_cell_features(embedding)
-    to_object = np.square(cells - obj).sum(axis=1)
-    candidates = (to_object < np.square(cells - background).sum(axis=1)).reshape(rows, cols)
-    if not candidates.any():
-        return None
-    closest = np.unravel_index(int(np.argmin(np.where(candidates.reshape(-1), to_object, np.inf))), (rows, cols))
-    regions, _ = ndimage.label(candidates, structure=np.ones((3, 3)))
-    region = regions == regions[closest]
+def region_points(region: np.ndarray, count: int = REGION_POINTS) -> np.ndarray:
+    """Up to `count` cells (K, 2) = (row, col) spread over a region's inner part (cells at least half as
+    deep inside as its deepest): the deepest cell first, then each cell furthest from those chosen."""
     depth = ndimage.distance_transform_edt(np.pad(region, 1))[1:-1, 1:-1]
-    innermost = int(np.argmax(depth))
-    x, y = cell_centres(embedding.image_size, embedding.grid_size).reshape(-1, 2)[innermost].tolist()
-    return x, y
+    inner = np.argwhere(depth >= 0.5 * depth.max())
+    chosen = [np.argwhere(depth == depth.max())[0]]
+    while len(chosen) < min(count, len(inner)):
+        spread = np.min([np.square(inner - cell).sum(axis=1) for cell in chosen], axis=0)
+        if spread.max() == 0:
+            break
+        chosen.append(inner[int(np.argmax(spread))])
+    return np.array(chosen)
 
 
-def centred_box(box: np.ndarray, centre: Tuple[float, float], image_size: Tuple[int, int]) -> np.ndarray:
-    """The box (x0, y0, x1, y1) if it holds `centre` = (x, y); else moved to be centred on it, then shifted
-    back inside the image."""
-    if box[0] <= centre[0] < box[2] and box[1] <= centre[1] < box[3]:
-        return np.asarray(box, dtype=np.float64)
-    width, height = box[2] - box[0], box[3] - box[1]
-    x0 = float(np.clip(centre[0] - width / 2, 0.0, max(image_size[1] - width, 0.0)))
-    y0 = float(np.clip(centre[1] - height / 2, 0.0, max(image_size[0] - height, 0.0)))
-    return np.array([x0, y0, x0 + width, y0 + height], dtype=np.float64)
+def region_prompt(region: np.ndarray, embedding: Embedding) -> Tuple[np.ndarray, np.ndarray]:
+    """Positive points (K, 2) = (x, y) at `region_points` and the box (x0, y0, x1, y1) of the region's cells
+    in pixels."""
+    centres = cell_centres(embedding.image_size, embedding.grid_size).numpy()
+    cells = region_points(region)
+    rows, cols = np.nonzero(region)
+    size = max(embedding.image_size) / embedding.grid_size  # pixels per cell
+    box = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], dtype=np.float64) * size
+    box = np.minimum(box, [embedding.image_size[1], embedding.image_size[0]] * 2)
+    return centres[cells[:, 0], cells[:, 1]], box
 
 
 def track(
@@ -211,7 +252,7 @@ def track(
     first = segment(backend, clicked, pixels, labels)
     prompt = {"points": np.asarray(pixels).tolist(), "labels": np.asarray(labels).astype(int).tolist()}
     visited = {click_time: TrackedMask(click_time, first, prompt)}
-    features = object_features(clicked, first) if propagation == "embedding" else None
+    appearance = ObjectAppearance.of(clicked, first) if propagation == "embedding" else None
     for chain in propagation_chains(click_time, times, num_frames):
         box, box_time = mask_box(first), click_time
         for time in chain:
@@ -220,12 +261,14 @@ def track(
             if box is not None:
                 embedding = embedding_at(time)
                 mask = segment(backend, embedding, np.zeros((0, 2)), [], box)
-                found = None
-                if features is not None and not holds_object(embedding, mask, features):
-                    found = locate_object(embedding, features)
-                if found is not None:
-                    prompt.update(box=centred_box(box, found, first.shape).tolist(), points=[list(found)], labels=[1])
-                    mask = segment(backend, embedding, np.array([found]), [1], np.array(prompt["box"]))
+                if appearance is not None:
+                    cells, distance = appearance.cells(embedding)
+                    near = mask_cells(mask, embedding.grid_size)
+                    region = object_region(cells, distance, near)
+                    if region is not None and iou(near, region) < AGREEMENT:
+                        points, region_box = region_prompt(region, embedding)
+                        prompt.update(box=region_box.tolist(), points=points.tolist(), labels=[1] * len(points))
+                        mask = segment(backend, embedding, points, np.ones(len(points)), region_box)
             visited[time] = TrackedMask(time, mask, prompt)
             if mask.any():
                 box, box_time = mask_box(mask), time
