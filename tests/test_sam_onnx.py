@@ -3,6 +3,7 @@ exported with the package's own model classes and ONNX wrapper (no weights can b
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from functools import partial
@@ -11,8 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
+from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.config import BuiltinSamConfig, OnnxSamConfig
+from gear_nerfstudio.sam.feature_cache import read_header
 from gear_nerfstudio.sam.interface import Embedding
 from gear_nerfstudio.sam.onnx_backend import (
     OnnxSamBackend,
@@ -22,6 +26,10 @@ from gear_nerfstudio.sam.onnx_backend import (
     prompt_inputs,
     transform_coords,
 )
+from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from gear_nerfstudio.tracking.cli import dataset_cameras
+from gear_nerfstudio.tracking.click import project_prompt
+from gear_nerfstudio.tracking.propagation import render_embedding, segment
 
 pytest.importorskip("segment_anything")
 pytest.importorskip("onnxruntime")
@@ -29,7 +37,7 @@ pytest.importorskip("onnx")  # torch.onnx.export needs it
 
 from segment_anything import SamPredictor  # noqa: E402
 
-from tests.conftest import IMPORT_WARNING, command  # noqa: E402
+from tests.conftest import IMPORT_WARNING, command, ns  # noqa: E402
 from segment_anything.modeling import ImageEncoderViT, MaskDecoder, PromptEncoder, Sam, TwoWayTransformer  # noqa: E402
 from segment_anything.utils.onnx import SamOnnxModel  # noqa: E402
 from segment_anything.utils.transforms import ResizeLongestSide  # noqa: E402
@@ -295,3 +303,89 @@ def test_onnxruntime_is_imported_only_when_needed():
 def test_decode_rejects_bad_embeddings(backend):
     with pytest.raises(ValueError, match="shape"):
         backend.decode(Embedding(np.zeros((256, 32, 32), np.float32), (48, 40)), np.array([[1.0, 1.0]]), np.array([1]))
+
+
+def test_onnx_backend_end_to_end_through_ns_train_and_ns_gear_track(onnx_files, tmp_path):
+    """A user's own SAM or MobileSAM export (the tiny SAM above stands in for it) through both commands.
+
+    `ns-train ... sam-onnx --encoder E --decoder D` encodes every image with the ONNX encoder into the SAM feature
+    cache (each file's header names the backend and both model files), trains the SAM head on it (L_SAM is logged)
+    and prompts the ONNX decoder in its gear updates (mask source "sam"). `ns-gear-track` on that run takes the
+    backend from config.yml, reuses the cache and decodes the model's rendered 256 x 64 x 64 embeddings with the
+    ONNX decoder.
+
+    The SAM is random and the model trained for 20 iterations: it renders almost the same feature in every cell,
+    so the random decoder returns its own 4-cell upsampling pattern, aliased to a stripe pattern at 24 x 18 (the
+    masks were looked at). This checks the plumbing, not the quality. That the ONNX decoder made the masks is
+    checked by decoding the model's rendered embedding at the clicked time with a fresh `OnnxSamBackend` and the
+    projected click, and by the built-in decoder giving another mask there.
+    """
+    from nerfstudio.utils.eval_utils import eval_setup
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cameras, frames, size = 3, 3, (18, 24)  # the encoder runs at 1024 x 1024 once per image: 9 images
+    spec = SyntheticSpec(dataset="n3d", width=size[1], height=size[0], frames=frames, cameras=cameras)
+    scene = write_synthetic_scene(tmp_path / "scene", spec)
+    encoder, decoder = onnx_files["encoder"], onnx_files["decoder"]
+    sam_cache, run = tmp_path / "sam-cache", tmp_path / "runs" / "onnx" / "gear-nerf-small" / "run"
+    trained = ns(
+        "ns-train", "gear-nerf-small", "--output-dir", str(tmp_path / "runs"), "--experiment-name", "onnx",
+        "--timestamp", "run", "--machine.device-type", "cpu", "--vis", "tensorboard", "--max-num-iterations", "20",
+        "--steps-per-eval-all-images", "1000", "--pipeline.gear-updates.iterations-per-epoch", "1",
+        "--pipeline.datamanager.sam-cache-dir", str(sam_cache),
+        "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(tmp_path / "frames"),
+        "sam-onnx", "--encoder", str(encoder), "--decoder", str(decoder), cwd=tmp_path,
+    )  # fmt: skip
+
+    # What ns-train wrote: a cache of the ONNX encoder's features of every image, the SAM loss, a checkpoint.
+    backend = OnnxSamBackend(encoder, decoder)
+    files = sorted(sam_cache.rglob("*.samf"))
+    assert [f.parent for f in files] == [sam_cache / "onnx"] * cameras * frames, files
+    for file in files:
+        header, _ = read_header(file)
+        assert header["backend"] == "onnx" and header["grid"] == 64 and header["channels"] == 256
+        assert header["settings"] == backend.settings  # both model files: resolved path, size and mtime
+        assert header["settings"]["encoder"]["path"] == str(encoder.resolve())
+        assert header["settings"]["decoder"]["path"] == str(decoder.resolve())
+        assert header["image_size"] == list(size)
+    cached = {file: file.stat().st_mtime_ns for file in files}
+    sam_loss = EventAccumulator(str(run)).Reload().Scalars("Train Loss Dict/sam_loss")
+    assert sam_loss and all(np.isfinite(e.value) and e.value > 0 for e in sam_loss)
+    assert (run / "nerfstudio_models" / "step-000000019.ckpt").is_file()
+    for number, step in ((1, 3), (2, 6), (3, 9)):  # epochs of one iteration: L = 3
+        assert f"Gear update {number} at step {step}:" in trained.stdout, trained.stdout[-3000:]
+    config = run / "config.yml"
+
+    # The click: the middle of the fast sphere in cam01 at time 0.5 (frame 1), from the scene's ground truth.
+    ids = np.load(scene / "ground_truth" / "cam01.npz")["object_ids"][1]
+    rows, cols = np.nonzero(ids == 3)
+    x, y = float(np.median(cols)) + 0.5, float(np.median(rows)) + 0.5
+    out = tmp_path / "track"
+    result = ns(
+        "ns-gear-track", "--load-config", str(config), "--output-dir", str(out), "--click-camera", "cam01",
+        "--click-time", "0.5", "--positive", str(x), str(y), "--target-cameras", "cam00", "--times", "0.5", "1.0",
+        "--min-accumulation", "0.01", "--no-video", cwd=tmp_path,
+    )  # fmt: skip
+    assert "Traceback" not in result.stderr
+    assert {file: file.stat().st_mtime_ns for file in sorted(sam_cache.rglob("*.samf"))} == cached  # not re-encoded
+    summary = json.loads((out / "tracking.json").read_text())
+    assert summary["targets"] == ["cam00"] and summary["times"] == [0.5, 1.0]
+    by_time = {record["time"]: record for record in summary["masks"]}
+    assert sorted(by_time) == [0.5, 1.0]
+    masks = {time: np.asarray(Image.open(out / record["mask"])) > 127 for time, record in by_time.items()}
+    assert all(mask.shape == size for mask in masks.values())
+    assert by_time[1.0]["prompt"]["from_time"] == 0.5
+
+    # The clicked-time mask is the ONNX decoder's on the model's rendered embedding, prompted at the click's point.
+    _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    assert isinstance(pipeline.sam_backend, OnnxSamBackend)  # the backend comes from config.yml
+    target = dataset_cameras(pipeline)[0]["cam00"]
+    point = torch.tensor(summary["click"]["prompts"][0]["point"])
+    pixel = np.array([project_prompt(target, point)])
+    np.testing.assert_allclose(by_time[0.5]["prompt"]["points"], pixel, atol=1e-4)
+    embedding = render_embedding(pipeline.model, target, 0.5, backend)
+    assert embedding.features.shape == (256, 64, 64) and embedding.image_size == size
+    expected = segment(backend, embedding, pixel, np.array([1]))
+    np.testing.assert_array_equal(masks[0.5], expected)
+    assert 0 < expected.sum() < expected.size  # a mask that tells the decoders apart ...
+    assert (segment(BuiltinSamBackend(), embedding, pixel, np.array([1])) != expected).any()  # ... which it does
