@@ -370,6 +370,7 @@ def test_onnx_backend_end_to_end_through_ns_train_and_ns_gear_track(onnx_files, 
     assert {file: file.stat().st_mtime_ns for file in sorted(sam_cache.rglob("*.samf"))} == cached  # not re-encoded
     summary = json.loads((out / "tracking.json").read_text())
     assert summary["targets"] == ["cam00"] and summary["times"] == [0.5, 1.0]
+    assert summary["sam_backend"] == {"name": "onnx", "settings": backend.settings}
     by_time = {record["time"]: record for record in summary["masks"]}
     assert sorted(by_time) == [0.5, 1.0]
     masks = {time: np.asarray(Image.open(out / record["mask"])) > 127 for time, record in by_time.items()}

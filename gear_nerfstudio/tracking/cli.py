@@ -7,9 +7,9 @@ Clicks are pixels (x, y) of a dataset camera (`--click-camera`) or of one frame 
 as `ns-render camera-path` reads (`--click-camera-path`, `--click-frame`). Targets are dataset cameras
 (default: the held-out ones) and/or every frame of a camera-path JSON, tracked at `--times` (default:
 every frame of the trained window). The output folder holds `masks/<view>/t<time>.png`,
-`overlay/<view>.mp4` (rendered colour, mask in red, prompts marked) and `tracking.json` (the clicks,
-their 3D points, the prompt of every mask and, when the scene has synthetic ground truth
-`ground_truth/<camera>.npz`, IoU and accuracy per mask with mIoU / accuracy at the clicked time and
+`overlay/<view>.mp4` (rendered colour, mask in red, prompts marked) and `tracking.json` (the SAM backend
+and its settings, the clicks, their 3D points, the prompt of every mask and, when the scene has synthetic
+ground truth `ground_truth/<camera>.npz`, IoU and accuracy per mask with mIoU / accuracy at the clicked time and
 t-mIoU / t-accuracy at the other times). Everything is checked before anything is written, and the
 folder appears only when complete.
 
@@ -118,7 +118,10 @@ class TrackCommand:
         plan = Plan.make(self, config, pipeline)
         for warning in plan.warnings:  # before the long part: the user may stop and click again
             warn(warning)
-        summary = plan.write(self, {"config": str(self.load_config), "checkpoint": str(checkpoint), "step": step})
+        backend = pipeline.sam_backend
+        header = {"config": str(self.load_config), "checkpoint": str(checkpoint), "step": step}
+        header["sam_backend"] = {"name": backend.name, "settings": backend.settings}  # which decoder made the masks
+        summary = plan.write(self, header)
         for warning in summary["warnings"][len(plan.warnings) :]:
             warn(warning)
         print(format_summary(summary, self.output_dir))
