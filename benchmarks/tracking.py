@@ -90,7 +90,7 @@ class TrackingBenchmark:
             x, y = self.click_pixel(scene, object_id)
             for propagation in PROPAGATIONS:
                 result_dir = self.output / f"track_{object_id}_{propagation}"
-                self.ns(
+                ns(
                     "ns-gear-track", "--load-config", str(config), "--output-dir", str(result_dir), "--overwrite",
                     "--click-camera", self.click_camera, "--click-time", str(click_time), "--positive", str(x),
                     str(y), "--target-cameras", "cam00", "--propagation", propagation,
@@ -124,18 +124,10 @@ class TrackingBenchmark:
         print(table)
         (self.output / "tracking.md").write_text(table)
 
-    def ns(self, *args: str, log: Optional[Path] = None) -> None:
-        command = [str(BIN / args[0]), *args[1:]]
-        if log is None:
-            subprocess.run(command, check=True, env=command_environment())
-            return
-        with open(log, "w") as handle:
-            subprocess.run(command, check=True, env=command_environment(), stdout=handle, stderr=subprocess.STDOUT)
-
     def train(self, scene: Path) -> Path:
         runs = self.output / "runs"
         runs.mkdir(parents=True, exist_ok=True)
-        self.ns(
+        ns(
             "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
             "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
             "--machine.device-type", "cpu", "--vis",
@@ -196,6 +188,16 @@ class TrackingBenchmark:
         return iou(mask, truth), accuracy(mask, truth)
 
 
+def ns(*args: str, log: Optional[Path] = None) -> None:
+    """Run one of the environment's ns-* commands; its output goes to `log` when given."""
+    command = [str(BIN / args[0]), *args[1:]]
+    if log is None:
+        subprocess.run(command, check=True, env=command_environment())
+        return
+    with open(log, "w") as handle:
+        subprocess.run(command, check=True, env=command_environment(), stdout=handle, stderr=subprocess.STDOUT)
+
+
 def pct(value: Optional[float]) -> str:
     return "n/a" if value is None else f"{100 * value:.1f}"
 
@@ -207,7 +209,7 @@ def mean(values: List[Tuple[float, float]], index: int) -> Optional[float]:
 def describe(prompt: Dict) -> str:
     if "from_time" not in prompt:
         return "click"
-    point = "" if "points" not in prompt else " + embedding point"
+    point = "" if "points" not in prompt else " + region points"
     return f"box from t={prompt['from_time']:.2f}{point}"
 
 
