@@ -36,7 +36,7 @@ from scipy import ndimage
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.tracking.metrics import accuracy, iou
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-from tracking import PROPAGATIONS, describe, mean, ns, pct
+from tracking import PROPAGATIONS, describe, mean, ns, pct, write_report
 
 CAPTURE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "panoptic_basketball"
 PERSON_PIXELS = 1000
@@ -80,6 +80,7 @@ class RealTrackingBenchmark:
         trained = time.time()
         click_time = self.click_frame / (frames - 1)
         clicked_people = people(masks / self.click_camera / f"{self.click_frame:05d}.png")
+        held_out = [people(masks / self.held_out / f"{frame:05d}.png") for frame in range(frames)]
         lines += [
             f"Run: `{config}`; click in camera {self.click_camera} at time {click_time:.3f} (frame "
             f"{self.click_frame}), one positive click per person at the mask pixel deepest inside them; target: "
@@ -99,7 +100,7 @@ class RealTrackingBenchmark:
                     str(y), "--target-cameras", self.held_out, "--propagation", propagation,
                 )  # fmt: skip
                 summary = json.loads((folder / "tracking.json").read_text())
-                scores = self.score(folder, summary, masks, frames, click_time)
+                scores = score(folder, summary, held_out, click_time)
                 at_click = [s for t, s in scores.items() if t == click_time]
                 other = [s for t, s in scores.items() if t != click_time]
                 lines.append(
@@ -114,14 +115,12 @@ class RealTrackingBenchmark:
                         f"| {record['time']:.3f} | {pct(value[0])} | {pct(value[1])} | {describe(record['prompt'])} |"
                     )
         tracked = time.time()
-        table = "\n".join(lines + ["", "Per time:"] + details)
-        table += (
-            f"\n\nSegmenter on frames {segmented - started:.0f} s, training {trained - segmented:.0f} s (0 when "
+        write_report(
+            self.output / "tracking_real.md", lines, details,
+            f"Segmenter on frames {segmented - started:.0f} s, training {trained - segmented:.0f} s (0 when "
             f"--config is given), tracking ({len(clicked_people) * len(PROPAGATIONS)} ns-gear-track runs) "
-            f"{tracked - trained:.0f} s, wall clock.\n"
-        )
-        print(table)
-        (self.output / "tracking_real.md").write_text(table)
+            f"{tracked - trained:.0f} s, wall clock.",
+        )  # fmt: skip
 
     def segmenter_on_frames(self, masks: Path, frames: int) -> str:
         """mIoU / accuracy of one click per person on the backend's encoding of every masked frame."""
@@ -163,31 +162,27 @@ class RealTrackingBenchmark:
         )  # fmt: skip
         return runs / "tracking" / self.method / "run" / "config.yml"
 
-    def score(
-        self, folder: Path, summary: Dict, masks: Path, frames: int, click_time: float
-    ) -> Dict[float, Tuple[float, float]]:
-        """IoU and accuracy of every tracked mask against the held-out camera's component of the clicked person."""
-        truth = {
-            frame: people(masks / self.held_out / f"{frame:05d}.png") for frame in range(frames)
-        }
-        click_frame = round(click_time * (frames - 1))
-        x, y = next(r for r in summary["masks"] if r["time"] == click_time)["prompt"]["points"][0]
-        candidates = truth[click_frame]
-        distances = [ndimage.distance_transform_edt(~c)[min(int(y), c.shape[0] - 1), min(int(x), c.shape[1] - 1)]
-                     for c in candidates]
-        person = {click_frame: candidates[int(np.argmin(distances))]}
-        for step in (1, -1):
-            frame = click_frame + step
-            while 0 <= frame < frames:
-                previous = person[frame - step]
-                person[frame] = max(truth[frame], key=lambda c: np.count_nonzero(c & previous))
-                frame += step
-        scores = {}
-        for record in summary["masks"]:
-            predicted = np.asarray(Image.open(folder / record["mask"])) > 0
-            target = person[round(record["time"] * (frames - 1))]
-            scores[record["time"]] = (iou(predicted, target), accuracy(predicted, target))
-        return scores
+
+def score(
+    folder: Path, summary: Dict, held_out: List[List[np.ndarray]], click_time: float
+) -> Dict[float, Tuple[float, float]]:
+    """IoU and accuracy of every tracked mask against the clicked person's component in the held-out camera,
+    whose person components per frame are `held_out`."""
+    frames = len(held_out)
+    click_frame = round(click_time * (frames - 1))
+    x, y = next(r for r in summary["masks"] if r["time"] == click_time)["prompt"]["points"][0]
+    nearest = [float(np.hypot(*(np.argwhere(c) - [y, x]).T).min()) for c in held_out[click_frame]]
+    person = {click_frame: held_out[click_frame][int(np.argmin(nearest))]}
+    for step in (1, -1):
+        for frame in range(click_frame + step, frames if step > 0 else -1, step):
+            previous = person[frame - step]
+            person[frame] = max(held_out[frame], key=lambda c: np.count_nonzero(c & previous))
+    scores = {}
+    for record in summary["masks"]:
+        predicted = np.asarray(Image.open(folder / record["mask"])) > 0
+        target = person[round(record["time"] * (frames - 1))]
+        scores[record["time"]] = (iou(predicted, target), accuracy(predicted, target))
+    return scores
 
 
 if __name__ == "__main__":
