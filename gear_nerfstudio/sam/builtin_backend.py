@@ -184,12 +184,13 @@ class BuiltinSamBackend(SamBackend):
             scores *= [_box_fill(r, inside) for r in regions]
         middle = len(regions) // 2
         order = sorted(range(len(regions)), key=lambda i: (-scores[i], i != middle))
-        masks = np.stack([self._upsample(regions[i], image_size, scale) for i in order])
+        masks = np.stack([self.upsample(regions[i], image_size, scale) for i in order])
         return masks, scores[order].astype(np.float32)
 
     @staticmethod
-    def _upsample(region: np.ndarray, image_size: Tuple[int, int], scale: float) -> np.ndarray:
-        """Mask at every pixel centre: cell logits (+1 in, -1 out) interpolated bilinearly, > 0."""
+    def upsample(region: np.ndarray, image_size: Tuple[int, int], scale: float) -> np.ndarray:
+        """Mask at every pixel centre of a region of valid cells: cell logits (+1 in, -1 out) interpolated
+        bilinearly, > 0."""
         logits = np.where(region, 1.0, -1.0)
         rows = _interpolation_matrix(image_size[0], region.shape[0], scale)
         cols = _interpolation_matrix(image_size[1], region.shape[1], scale)
