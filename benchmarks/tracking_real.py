@@ -65,6 +65,8 @@ class RealTrackingBenchmark:
     capture: Path = CAPTURE
     method: str = "gear-nerf-small"
     iterations: int = 3000
+    seed: int = 42
+    """Training seed (`--machine.seed`; nerfstudio's default is 42)."""
     held_out: str = "00"
     """Held-out camera: it must have masks; camera 00 sees both people at every frame (06, the speed
     benchmark's, sees one)."""
@@ -173,8 +175,8 @@ class RealTrackingBenchmark:
         ns(
             "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
             "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
-            "--machine.device-type", "cpu", "--vis", "tensorboard",
-            "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"), "technicolor-data", "--data",
+            "--machine.device-type", "cpu", "--machine.seed", str(self.seed), "--vis",
+            "tensorboard", "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"), "technicolor-data", "--data",
             str(self.capture), "--near", "0.3", "--far", "7", "--held-out-camera", self.held_out, "--cache-dir",
             str(self.output / "frames"), log=runs / "train.log",
         )  # fmt: skip
