@@ -92,12 +92,7 @@ class TrackingBenchmark:
             x, y = self.click_pixel(scene, object_id)
             for propagation in PROPAGATIONS:
                 result_dir = self.output / f"track_{object_id}_{propagation}"
-                ns(
-                    "ns-gear-track", "--load-config", str(config), "--output-dir", str(result_dir), "--overwrite",
-                    "--click-camera", self.click_camera, "--click-time", str(click_time), "--positive", str(x),
-                    str(y), "--target-cameras", "cam00", "--propagation", propagation,
-                )
-                summary = json.loads((result_dir / "tracking.json").read_text())
+                summary = track_click(config, result_dir, self.click_camera, click_time, (x, y), "cam00", propagation)
                 metrics = summary["metrics"]
                 reference = self.reference(held_out, summary, object_id, click_time, propagation)
                 name = f"{OBJECT_NAMES.get(object_id, object_id)} ({object_id})"
@@ -109,13 +104,11 @@ class TrackingBenchmark:
                 lines.append(f"| {name} | {propagation} | same click on the encoder features of cam00's real frames "
                              f"| {reference} |")
                 clicked = next(r for r in summary["masks"] if r["time"] == click_time)["prompt"]["points"]
-                details += [f"\n{name}, {propagation}: click pixel ({x}, {y}) of {self.click_camera}, projected "
-                            f"to cam00 pixel {clicked}", "", "| time | IoU | Acc. | prompt |", "|---|---|---|---|"]
-                for record in summary["masks"]:
-                    details.append(
-                        f"| {record['time']:.2f} | {pct(record.get('iou'))} | {pct(record.get('accuracy'))} "
-                        f"| {describe(record['prompt'])} |"
-                    )
+                details += per_time_table(
+                    f"{name}, {propagation}: click pixel ({x}, {y}) of {self.click_camera}, projected to cam00 pixel "
+                    f"{clicked}",
+                    summary["masks"], {r["time"]: (r.get("iou"), r.get("accuracy")) for r in summary["masks"]}, 2,
+                )  # fmt: skip
         tracked = time.time()
         write_report(
             self.output / "tracking.md", lines, details,
@@ -193,6 +186,34 @@ def write_report(path: Path, table: List[str], per_time: List[str], timing: str)
     report = "\n".join(table + ["", "Per time:"] + per_time) + f"\n\n{timing}\n"
     print(report)
     path.write_text(report)
+
+
+def track_click(
+    config: Path, folder: Path, camera: str, click_time: float, pixel: Tuple[float, float], target: str,
+    propagation: str,
+) -> Dict:
+    """`ns-gear-track` of one positive click at `pixel` of `camera` into the `target` camera(s), written to
+    `folder`; returns its tracking.json."""
+    ns(
+        "ns-gear-track", "--load-config", str(config), "--output-dir", str(folder), "--overwrite", "--click-camera",
+        camera, "--click-time", str(click_time), "--positive", str(pixel[0]), str(pixel[1]), "--target-cameras",
+        target, "--propagation", propagation,
+    )  # fmt: skip
+    return json.loads((folder / "tracking.json").read_text())
+
+
+def per_time_table(
+    title: str, records: List[Dict], scores: Dict[float, Tuple[Optional[float], Optional[float]]], time_digits: int
+) -> List[str]:
+    """A titled table of the tracked masks (tracking.json's "masks"): time, IoU and accuracy from `scores`
+    (by time), and the prompt."""
+    rows = [f"\n{title}:", "", "| time | IoU | Acc. | prompt |", "|---|---|---|---|"]
+    for record in records:
+        value = scores[record["time"]]
+        rows.append(
+            f"| {record['time']:.{time_digits}f} | {pct(value[0])} | {pct(value[1])} | {describe(record['prompt'])} |"
+        )
+    return rows
 
 
 def ns(*args: str, log: Optional[Path] = None) -> None:

@@ -24,7 +24,6 @@ Prints a markdown table and writes it to `<output>/tracking_real.md`.
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -39,7 +38,7 @@ from gear_nerfstudio.sam.interface import cells_per_pixel
 from gear_nerfstudio.tracking.metrics import accuracy, iou
 from gear_nerfstudio.tracking.propagation import mask_cells
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-from tracking import PROPAGATIONS, describe, mean, ns, pct, write_report
+from tracking import PROPAGATIONS, mean, ns, pct, per_time_table, track_click, write_report
 
 CAPTURE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "panoptic_basketball"
 PERSON_PIXELS = 1000
@@ -99,12 +98,7 @@ class RealTrackingBenchmark:
             x, y = deepest_pixel(person)
             for propagation in PROPAGATIONS:
                 folder = self.output / f"track_person{index}_{propagation}"
-                ns(
-                    "ns-gear-track", "--load-config", str(config), "--output-dir", str(folder), "--overwrite",
-                    "--click-camera", self.click_camera, "--click-time", str(click_time), "--positive", str(x),
-                    str(y), "--target-cameras", self.held_out, "--propagation", propagation,
-                )  # fmt: skip
-                summary = json.loads((folder / "tracking.json").read_text())
+                summary = track_click(config, folder, self.click_camera, click_time, (x, y), self.held_out, propagation)
                 scores = score(folder, summary, held_out, click_time)
                 at_click = [s for t, s in scores.items() if t == click_time]
                 other = [s for t, s in scores.items() if t != click_time]
@@ -113,12 +107,7 @@ class RealTrackingBenchmark:
                     + " | ".join(pct(mean(values, k)) for values in (at_click, other) for k in (0, 1))
                     + " |"
                 )
-                details += [f"\nperson {index}, {propagation}:", "", "| time | IoU | Acc. | prompt |", "|---|---|---|---|"]
-                for record in summary["masks"]:
-                    value = scores[record["time"]]
-                    details.append(
-                        f"| {record['time']:.3f} | {pct(value[0])} | {pct(value[1])} | {describe(record['prompt'])} |"
-                    )
+                details += per_time_table(f"person {index}, {propagation}", summary["masks"], scores, 3)
         tracked = time.time()
         write_report(
             self.output / "tracking_real.md", lines, details,
@@ -175,8 +164,8 @@ class RealTrackingBenchmark:
         ns(
             "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
             "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
-            "--machine.device-type", "cpu", "--machine.seed", str(self.seed), "--vis",
-            "tensorboard", "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"), "technicolor-data", "--data",
+            "--machine.device-type", "cpu", "--machine.seed", str(self.seed), "--vis", "tensorboard",
+            "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"), "technicolor-data", "--data",
             str(self.capture), "--near", "0.3", "--far", "7", "--held-out-camera", self.held_out, "--cache-dir",
             str(self.output / "frames"), log=runs / "train.log",
         )  # fmt: skip

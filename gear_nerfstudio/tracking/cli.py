@@ -118,9 +118,11 @@ class TrackCommand:
         plan = Plan.make(self, config, pipeline)
         for warning in plan.warnings:  # before the long part: the user may stop and click again
             warn(warning)
-        backend = pipeline.sam_backend
-        header = {"config": str(self.load_config), "checkpoint": str(checkpoint), "step": step}
-        header["sam_backend"] = {"name": backend.name, "settings": backend.settings}  # which decoder made the masks
+        backend = pipeline.sam_backend  # named in the summary: which decoder made the masks
+        header = {
+            "config": str(self.load_config), "checkpoint": str(checkpoint), "step": step,
+            "sam_backend": {"name": backend.name, "settings": backend.settings},
+        }  # fmt: skip
         summary = plan.write(self, header)
         for warning in summary["warnings"][len(plan.warnings) :]:
             warn(warning)
