@@ -12,7 +12,9 @@ dataset's world units) and says where its frames are; this module turns that int
   radius sqrt(near * far) around the rig, with `unbounded` set for the model to contract what lies
   outside);
 - metadata: near, far (scaled), unbounded, num_frames, camera_ids and frame_ids per image,
-  camera_names and frame_numbers (the dataset's own names and frame numbers).
+  camera_names and frame_numbers (the dataset's own names and frame numbers);
+- each camera's rig index in its `Cameras.metadata` (`RIG_CAMERA`), which rays carry to the model's per-camera
+  appearance codes.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from nerfstudio.data.scene_box import SceneBox
 
 from gear_nerfstudio.data.errors import DatasetError
 from gear_nerfstudio.data.layouts import layout_hint
+from gear_nerfstudio.fields.appearance import RIG_CAMERA
 
 
 @dataclass
@@ -159,6 +162,7 @@ class MultiViewVideoDataParser(DataParser):
             distortion_params=distortion,
             camera_type=rig.camera_type,
             times=(frame_ids.float() / max(T - 1, 1))[:, None],
+            metadata={RIG_CAMERA: cam_ids[:, None]},
         )
         return DataparserOutputs(
             image_filenames=[path for camera_files in files for path in camera_files if path is not None],

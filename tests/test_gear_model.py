@@ -1,5 +1,7 @@
 """GearNeRFModel: forward, losses, backward, parameter groups and evaluation on the CPU."""
 
+import re
+
 import pytest
 import torch
 
@@ -171,6 +173,84 @@ def test_metadata_drives_collider_frames_and_contraction():
     model = make_model(metadata={})
     assert isinstance(model.collider, AABBBoxCollider)
     assert model.field.time_resolutions == [1, 1, 1, 1]
+
+
+@pytest.mark.parametrize("base_sampler", ["uniform", "proposal"])
+def test_split_samples_are_the_base_samples_in_use_split_inside_their_own_intervals(base_sampler):
+    """Sec 4.4 on either base sampler: each base sample at gear p becomes 2^(p-1) samples that tile its own
+    interval (the proposal sampler's intervals differ in length along a ray)."""
+    model = make_model(base_sampler=base_sampler, num_proposal_samples=(16,), proposal_resolutions=(8,))
+    force_gears_in_upper_half(model, 3)
+    model.train()
+    rays = model.collider(make_rays(64))
+    base, _, _ = model.sample_base(rays)
+    levels = model.field.gear_levels(base.frustums.get_positions(), base.times)
+    assert (levels == 1).any() and (levels == 3).any()
+    split = model.split_sampler(base, model.field.gear_levels)
+    assert torch.equal(split.num_samples_per_ray, (2 ** (levels - 1)).sum(dim=1))
+    parent_starts = base.frustums.starts[..., 0].gather(1, split.parent)
+    parent_ends = base.frustums.ends[..., 0].gather(1, split.parent)
+    starts, ends = split.ray_samples.frustums.starts[..., 0], split.ray_samples.frustums.ends[..., 0]
+    inside = (starts >= parent_starts) & (ends <= parent_ends) & (starts <= ends)
+    assert bool(inside[split.valid].all())
+    lengths = torch.zeros_like(base.frustums.starts[..., 0]).scatter_add(1, split.parent, (ends - starts) * split.valid)
+    assert torch.allclose(lengths, base.frustums.ends[..., 0] - base.frustums.starts[..., 0], atol=1e-6)
+
+
+def test_evaluation_renders_start_at_the_near_plane():
+    """nerfstudio's NearFarCollider starts rays at 0 outside training by default; a held-out rig camera would then
+    render the space behind its own near plane, which no training ray constrains (on a dome: the wall the camera
+    sits in, an opaque dark layer). Evaluation renders must start where training samples did."""
+    model = make_model()
+    for mode in (model.train, model.eval):
+        mode()
+        samples, _, _ = model.sample_base(model.collider(make_rays(16)))
+        assert float(samples.frustums.starts.min()) >= METADATA["near"] - 1e-6
+
+
+def test_camera_appearance_codes_for_trained_held_out_and_unknown_cameras():
+    """Training cameras' rays get their own codes; the held-out camera and rays without a rig camera get the mean
+    code of the trained cameras; the code changes the colour, not the density."""
+    metadata = {**METADATA, "camera_names": ["cam00", "cam01", "cam02"], "camera_ids": torch.tensor([1, 1, 2, 2])}
+    model = make_model(metadata=metadata, appearance_dim=4)
+    appearance = model.field.appearance
+    with torch.no_grad():
+        appearance.codes.weight.copy_(torch.tensor([[9.0] * 4, [1.0] * 4, [3.0] * 4]))
+    assert appearance.trained.tolist() == [False, True, True]
+    codes = appearance({"rig_camera": torch.tensor([[0], [1], [2]])}, 3)
+    assert codes[:, 0].tolist() == [2.0, 1.0, 3.0]  # cam00 was never trained: the mean of cam01 and cam02
+    assert appearance({}, 2)[:, 0].tolist() == [2.0, 2.0]
+    model.eval()
+    rays = make_rays(8)
+    outputs = {}
+    for camera in (1, 2):
+        rays.metadata = {"rig_camera": torch.full((8, 1), camera)}
+        with torch.no_grad():
+            outputs[camera] = model(rays)
+    assert torch.equal(outputs[1]["depth"], outputs[2]["depth"])
+    assert not torch.allclose(outputs[1]["rgb"], outputs[2]["rgb"])
+
+
+def test_near_layer_report_compares_with_the_training_rays_depth(capsys):
+    """A training batch sets the reference depth; an opaque evaluation view that ends much closer than it is
+    reported (metric ``near_layer`` and a console line), one that ends as far is not."""
+    model = make_model()
+    model.train()
+    rays, batch = make_rays(), make_batch()
+    outputs = model(rays)
+    model.get_metrics_dict(outputs, batch)
+    reference = float(model.training_depth)
+    assert reference == pytest.approx(float(outputs["depth"].median()))
+    size = (16, 16)  # SSIM's window is 11 pixels
+    for depth, expected in ((0.1 * reference, 1.0), (reference, 0.0)):
+        view = {
+            "rgb": torch.rand(*size, 3), "accumulation": torch.ones(*size, 1), "depth": torch.full((*size, 1), depth),
+            "gear": torch.zeros(*size, 3),
+        }  # fmt: skip
+        metrics, _ = model.get_image_metrics_and_images(view, {"image": torch.rand(*size, 3)})
+        assert metrics["near_layer"] == expected and metrics["accumulation"] == 1.0
+        printed = " ".join(re.sub(r"\S+\.py:\d+", " ", capsys.readouterr().out).split())  # rich's lines, unwrapped
+        assert ("an opaque layer sits in front of the camera" in printed) == (expected == 1.0)
 
 
 def test_time_resolutions_override_sets_rows_of_each_gear():

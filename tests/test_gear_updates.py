@@ -174,7 +174,7 @@ def test_updates_end_when_the_loss_maps_are_flat(loop_run):
     pipeline = trainer.pipeline
     flat = GearUpdater(
         dataclasses.replace(updater.config, variance_threshold=1e9), pipeline.model, pipeline.datamanager,
-        pipeline.sam_backend, updater.optimizer, GearUpdateState(), rays_per_batch=1024, first_step=0,
+        pipeline.sam_backend, updater.optimizer, GearUpdateState(pipeline.model.gear_assignment(), 4), rays_per_batch=1024, first_step=0,
         last_step=LOOP_ITERATIONS - 1,
     )
     before = [p.detach().clone() for p in trainer.pipeline.model.field.gear_function.parameters()]
@@ -234,3 +234,28 @@ def test_every_preset_plans_several_updates_at_every_dataset_size(preset, datase
     plan = describe_plan(updates, steps, cameras, config.pipeline.datamanager.train_num_rays_per_batch)
     assert f"{count * frames * width * height / 1e6:.4g} M training pixels" in plan
     assert ", ".join(map(str, steps)) in plan
+
+
+def test_the_guard_reviews_each_update_and_undoes_one_after_which_its_views_are_worse(loop_run):
+    """The loop run's updates were each reviewed L epochs later and kept. An update held to a bar it cannot meet
+    (its views must gain 1000 dB by its review) is undone there: the gear assignment is back to what it was just
+    before the update, and no further update runs; the held-out view is measured at both ends."""
+    _, trainer, updater = loop_run
+    pipeline, model = trainer.pipeline, trainer.pipeline.model
+    assert int(updater.state.num_undone) == 0 and int(updater.state.review_update) == 0
+    state = GearUpdateState(model.gear_assignment(), 4)
+    strict = GearUpdater(
+        dataclasses.replace(updater.config, guard_tolerance=-1000.0, variance_threshold=0.0), model, pipeline.datamanager, pipeline.sam_backend,
+        updater.optimizer, state, rays_per_batch=1024, first_step=0, last_step=LOOP_ITERATIONS - 1,
+    )  # fmt: skip
+    before = model.gear_assignment()
+    stats = strict.update(60)
+    assert np.isfinite([stats["views_psnr"], stats["held_out_psnr"]]).all()
+    assert int(state.num_updates) == 1 and int(state.review_update) == 1 and int(state.review_step) == 120
+    changed = model.gear_assignment()
+    assert not all(torch.equal(changed[key], before[key]) for key in before)
+    strict(119)  # not yet due
+    assert int(state.review_update) == 1
+    strict(120)  # due: reviewed and undone; the update due at the same step no longer runs
+    assert int(state.num_undone) == 1 and bool(state.finished) and int(state.num_updates) == 1
+    assert all(torch.equal(value, before[key]) for key, value in model.gear_assignment().items())

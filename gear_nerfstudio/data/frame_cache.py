@@ -45,7 +45,7 @@ def _source_key(path: Path, extra: str) -> str:
 
 
 def _write_atomic_png(rgb: np.ndarray, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # runs sharing the cache write their own
     Image.fromarray(rgb).save(tmp, format="PNG")
     os.replace(tmp, path)
 
@@ -84,7 +84,7 @@ def video_info(video: Path, cache_dir: Optional[Path] = None) -> VideoInfo:
     if info.num_frames == 0:
         raise DatasetError(f"{video}: the video has no frames")
     folder.mkdir(parents=True, exist_ok=True)
-    tmp = info_file.with_name("info.json.tmp")
+    tmp = info_file.with_name(f"info.json.{os.getpid()}.tmp")
     tmp.write_text(json.dumps(info.__dict__))
     os.replace(tmp, info_file)
     return info

@@ -19,6 +19,7 @@ from nerfstudio.field_components.spatial_distortions import SpatialDistortion
 from nerfstudio.fields.base_field import Field
 
 from gear_nerfstudio import distributed
+from gear_nerfstudio.fields.appearance import CameraAppearance
 from gear_nerfstudio.fields.gear_function import GearFunction, gear_level
 from gear_nerfstudio.fields.planes import (
     TIME_PLANE_AXES,
@@ -34,17 +35,23 @@ from gear_nerfstudio.fields.planes import (
 )
 from gear_nerfstudio.fields.regularisers import l1_time_planes, plane_tv, time_smoothness
 
+APPEARANCE = "appearance"
+"""Key of each sample's appearance code in ``RaySamples.metadata`` (``sample_points``)."""
+
+
 def sample_points(
     positions: Float[Tensor, "*bs 3"],
     times: Optional[Float[Tensor, "*bs 1"]] = None,
     directions: Optional[Float[Tensor, "*bs 3"]] = None,
+    appearance: Optional[Float[Tensor, "*bs A"]] = None,
 ) -> RaySamples:
-    """Points (with times and viewing directions) as zero-length ray samples, the form a nerfstudio Field
-    evaluates."""
+    """Points (with times, viewing directions and appearance codes) as zero-length ray samples, the form a
+    nerfstudio Field evaluates."""
     zeros = torch.zeros_like(positions[..., :1])
     directions = torch.ones_like(positions) if directions is None else directions
     frustums = Frustums(origins=positions, directions=directions, starts=zeros, ends=zeros, pixel_area=zeros + 1)
-    return RaySamples(frustums=frustums, times=times)
+    metadata = None if appearance is None else {APPEARANCE: appearance}
+    return RaySamples(frustums=frustums, times=times, metadata=metadata)
 
 
 def temporal_resolutions(num_gears: int, num_frames: int) -> List[int]:
@@ -103,6 +110,8 @@ class GearField(Field):
         sam_dim: dimension of SAM encoder features.
         sam_head_dim: dimension predicted per sample before the lift; None predicts ``sam_dim`` directly.
         spatial_distortion: contraction for unbounded scenes, None for bounded scenes.
+        appearance_dim: channels of the per-camera appearance codes that enter the colour MLP; 0 for none.
+        num_cameras: cameras of the rig (codes); trained_cameras: those with training images.
     """
 
     def __init__(
@@ -122,6 +131,9 @@ class GearField(Field):
         sam_dim: int = 256,
         sam_head_dim: Optional[int] = 32,
         spatial_distortion: Optional[SpatialDistortion] = None,
+        appearance_dim: int = 0,
+        num_cameras: int = 0,
+        trained_cameras: Sequence[int] = (),
     ) -> None:
         super().__init__()
         if num_gears < 1:
@@ -160,8 +172,9 @@ class GearField(Field):
         self.density_net = MLP(
             in_dim=feature_dim, num_layers=2, layer_width=hidden_dim, out_dim=1 + geo_feat_dim, implementation="torch"
         )
+        self.appearance = CameraAppearance(num_cameras, appearance_dim, trained_cameras) if appearance_dim else None
         self.color_net = MLP(
-            in_dim=self.direction_encoding.get_out_dim() + geo_feat_dim,
+            in_dim=self.direction_encoding.get_out_dim() + geo_feat_dim + appearance_dim,
             num_layers=3,
             layer_width=hidden_dim_color,
             out_dim=3,
@@ -245,12 +258,16 @@ class GearField(Field):
         return density.reshape(*shape, 1), embedding.reshape(*shape, -1)
 
     def get_outputs(self, ray_samples: RaySamples, density_embedding: Optional[Tensor] = None) -> FieldOutputs:
-        """Colour (view-dependent, spherical harmonics), SAM embedding (Sec 4.2) and gear level of each sample."""
+        """Colour (view-dependent, spherical harmonics; with the sample's camera appearance code when the field has
+        codes, the mean code when the sample has none), SAM embedding (Sec 4.2) and gear level of each sample."""
         assert density_embedding is not None, "the gear field's outputs need get_density's embedding"
         geometry, features, levels = density_embedding.split([self.geo_feat_dim, self.feature_dim, 1], dim=-1)
-        directions = self.direction_encoding(F.normalize(ray_samples.frustums.directions, dim=-1))
+        inputs = [self.direction_encoding(F.normalize(ray_samples.frustums.directions, dim=-1)), geometry]
+        if self.appearance is not None:
+            codes = (ray_samples.metadata or {}).get(APPEARANCE)
+            inputs.append(self.appearance.mean_code().expand(*geometry.shape[:-1], -1) if codes is None else codes)
         return {
-            FieldHeadNames.RGB: self.color_net(torch.cat([directions, geometry], dim=-1)),
+            FieldHeadNames.RGB: self.color_net(torch.cat(inputs, dim=-1)),
             GearFieldHeadNames.SAM: self.sam_net(features),
             GearFieldHeadNames.GEAR_LEVEL: levels[..., 0].round().long(),
         }
@@ -297,6 +314,19 @@ class GearField(Field):
         new = touched & ~self.used_columns
         self.used_columns |= touched
         return new
+
+    def gear_assignment(self) -> Dict[str, Tensor]:
+        """A copy of what a gear update changes: the gear function g (Eq 4) and the claimed columns."""
+        state = {f"gear_function.{k}": v.detach().clone() for k, v in self.gear_function.state_dict().items()}
+        return {**state, "used_columns": self.used_columns.clone()}
+
+    @torch.no_grad()
+    def restore_gear_assignment(self, assignment: Dict[str, Tensor]) -> None:
+        """Undo a gear update: g and the claimed columns as ``gear_assignment`` copied them (columns claimed since
+        are released; they inherit again when next claimed)."""
+        for key, value in self.gear_function.state_dict().items():
+            value.copy_(assignment[f"gear_function.{key}"])
+        self.used_columns.copy_(assignment["used_columns"])
 
     @torch.no_grad()
     def inherit_new_columns(self, new: Bool[Tensor, "G R 3 C"], renewed: Optional[List[bool]] = None) -> None:

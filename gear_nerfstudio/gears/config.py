@@ -54,5 +54,11 @@ class GearUpdateConfig:
     motion_threshold: float = 0.03
     """Mean absolute RGB change over time (patch average, in [0, 1]) for a patch to count as moving;
     0 turns the motion gate off (the paper's behaviour)."""
+    guard_tolerance: float = 0.1
+    """The guard: each update is reviewed L epochs later (``GearUpdater.review``); when its training views then
+    render more than this many dB worse than just before it, it is undone and no further update runs."""
+    measure_held_out: bool = True
+    """Log the held-out camera's PSNR, at the times of each update's views, before it and at its review (measured
+    only: the guard decides on training views)."""
     motion_frames: int = 8
     """Other frames of the same camera compared with the view's frame (spread over the video)."""

@@ -3,12 +3,12 @@ update uses, and the record of what the updates have done (kept in checkpoints).
 
 from __future__ import annotations
 
-from typing import List
+from typing import Dict, List
 
 import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras
-from torch import nn
+from torch import Tensor, nn
 
 from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.gears.config import GearUpdateConfig
@@ -58,12 +58,46 @@ def no_updates_error(config: GearUpdateConfig, first_step: int, last_step: int) 
 
 
 class GearUpdateState(nn.Module):
-    """What the updates have done so far, as buffers, so that checkpoints keep it and a resumed run goes on."""
+    """What the updates have done so far, as buffers, so that checkpoints keep it and a resumed run goes on: the
+    counts, and the update waiting for its review (``GearUpdater.review``) with what it is judged against: its
+    views, their PSNR and the held-out view's just before it, and the gear assignment to go back to.
 
-    def __init__(self) -> None:
+    Args:
+        assignment: the model's gear assignment (``gear_assignment``), for the shapes of the copy.
+        views_per_update: training views of an update.
+    """
+
+    def __init__(self, assignment: Dict[str, Tensor], views_per_update: int) -> None:
         super().__init__()
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
         self.register_buffer("finished", torch.zeros((), dtype=torch.bool))
+        self.register_buffer("num_undone", torch.zeros((), dtype=torch.long))
+        self.register_buffer("review_update", torch.zeros((), dtype=torch.long))
+        """The update waiting for its review (1-based), 0 for none."""
+        self.register_buffer("review_step", torch.zeros((), dtype=torch.long))
+        self.register_buffer("review_views", torch.full((views_per_update,), -1, dtype=torch.long))
+        self.register_buffer("review_psnr", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("review_held_out_psnr", torch.zeros((), dtype=torch.float64))
+        self.before = nn.Module()
+        for key, value in assignment.items():
+            self.before.register_buffer(key.replace(".", "__"), torch.zeros_like(value))
+
+    def remember(
+        self, update: int, due: int, views: List[int], psnr: float, held_out_psnr: float, assignment: Dict[str, Tensor]
+    ) -> None:
+        """Keep an update for its review at step ``due``."""
+        self.review_update.fill_(update)
+        self.review_step.fill_(due)
+        self.review_views.fill_(-1)
+        self.review_views[: len(views)] = torch.tensor(views, dtype=torch.long)
+        self.review_psnr.fill_(psnr)
+        self.review_held_out_psnr.fill_(held_out_psnr)
+        for key, value in assignment.items():
+            getattr(self.before, key.replace(".", "__")).copy_(value)
+
+    def assignment_before(self) -> Dict[str, Tensor]:
+        """The gear assignment just before the update under review."""
+        return {key.replace("__", "."): value for key, value in self.before.named_buffers()}
 
 
 def spread_views(frame_ids: np.ndarray, count: int, rng: np.random.Generator) -> List[int]:

@@ -93,6 +93,10 @@ class GearNeRFModelConfig(ModelConfig):
     """Width of the colour MLP."""
     sam_dim: int = 256
     """Dimension of the SAM encoder features."""
+    appearance_dim: int = 16
+    """Channels of the per-camera appearance code in the colour MLP (exposure and white balance differ between a
+    rig's cameras); 0 turns it off. The held-out camera, and any camera without a rig index (viewer, camera paths),
+    is rendered with the mean code of the training cameras."""
     sam_head_dim: Optional[int] = 32
     """SAM embedding dimension per sample before the learned lift to sam_dim; None predicts sam_dim."""
     num_samples: int = 64
@@ -155,6 +159,20 @@ def psnr(prediction: Tensor, target: Tensor) -> Tensor:
     return -10.0 * torch.log10(torch.mean((prediction - target) ** 2).clamp(min=MIN_MSE))
 
 
+NEAR_LAYER_DEPTH = 0.25
+"""A pixel of an evaluation view is in a near layer when its depth is below this share of the training rays'
+median depth."""
+NEAR_LAYER_WARNING = 0.2
+"""Share of an opaque evaluation view (accumulation above 0.9) in a near layer that training reports."""
+
+
+def near_layer(depth: Float[Tensor, "*bs 1"], training_depth: Tensor) -> float:
+    """Share of the pixels of a render whose depth is below ``NEAR_LAYER_DEPTH`` x the training rays' median depth:
+    on a rig whose cameras see the scene from similar distances, a held-out view that ends that close sees a layer
+    in front of itself (0 before any training batch has set the reference)."""
+    return float((depth < NEAR_LAYER_DEPTH * training_depth).float().mean())
+
+
 def lpips_weights_path() -> Path:
     """Where torchvision keeps the AlexNet weights that torchmetrics' LPIPS needs."""
     from torchvision.models import AlexNet_Weights
@@ -202,6 +220,9 @@ class GearNeRFModel(Model):
             sam_dim=config.sam_dim,
             sam_head_dim=config.sam_head_dim,
             spatial_distortion=contraction,
+            appearance_dim=config.appearance_dim if metadata.get("camera_names") else 0,
+            num_cameras=len(metadata.get("camera_names", ())),
+            trained_cameras=sorted(set(torch.as_tensor(metadata.get("camera_ids", [])).tolist())),
         )
 
         self.proposal_networks = torch.nn.ModuleList()
@@ -243,7 +264,7 @@ class GearNeRFModel(Model):
             CONSOLE.log("[yellow]Gear-NeRF: no near/far in config or metadata; rays are clipped to the scene box.")
             self.collider = AABBBoxCollider(self.scene_box)
         else:
-            self.collider = NearFarCollider(near_plane=float(near), far_plane=float(far))
+            self.collider = NearFarCollider(near_plane=float(near), far_plane=float(far), reset_near_plane=False)
 
         self.renderer_rgb = RGBRenderer(background_color=config.background_color)
         self.renderer_accumulation = AccumulationRenderer()
@@ -258,6 +279,7 @@ class GearNeRFModel(Model):
         self.render_hooks: List[Callable[[Cameras, Dict[str, Tensor]], Dict[str, Tensor]]] = []
         """Extra outputs of full-image renders (``get_outputs_for_camera``), such as the viewer's tracked mask."""
         self.warned_no_time = False
+        self.register_buffer("training_depth", torch.zeros(()))
 
     def gear_values(
         self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*bs 1"]]
@@ -270,6 +292,14 @@ class GearNeRFModel(Model):
     ) -> Int[Tensor, "*bs"]:
         """Eq 5: gear level p(x, t)."""
         return self.field.gear_levels(positions, times)
+
+    def gear_assignment(self) -> Dict[str, Tensor]:
+        """A copy of what a gear update changes (``GearField.gear_assignment``)."""
+        return self.field.gear_assignment()
+
+    def restore_gear_assignment(self, assignment: Dict[str, Tensor]) -> None:
+        """Undo a gear update (``GearField.restore_gear_assignment``)."""
+        self.field.restore_gear_assignment(assignment)
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         """Groups "fields" (planes h, k^G, B, F_theta), "gear_field" (h', k' only), "proposal_networks" if used."""
@@ -315,10 +345,12 @@ class GearNeRFModel(Model):
         base_samples, weights_list, ray_samples_list = self.sample_base(ray_bundle)
         split = self.split_sampler(base_samples, self.field.gear_levels)
         samples = split.ray_samples
+        appearance = self.field.appearance
         packed = sample_points(
             split.pack(samples.frustums.get_positions()),
             None if samples.times is None else split.pack(samples.times),
             split.pack(samples.frustums.directions),
+            None if appearance is None else appearance(ray_bundle.metadata, ray_bundle.origins.shape[0])[split.ray_index],
         )
         field_outputs = self.field(packed)
         density = torch.where(split.valid[..., None], split.unpack(field_outputs[FieldHeadNames.DENSITY]), 0.0)
@@ -413,8 +445,11 @@ class GearNeRFModel(Model):
         return positions.reshape(-1, 3), samples.times.reshape(-1, 1), weights.reshape(-1)
 
     def get_metrics_dict(self, outputs: Dict[str, Any], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
-        """PSNR of the batch and the mean number of samples per ray."""
+        """PSNR of the batch and the mean number of samples per ray; a training batch also sets
+        ``training_depth``, the median depth of its rays (the reference of ``near_layer``)."""
         image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        if self.training:
+            self.training_depth.copy_(outputs["depth"].detach().median())
         return {
             "psnr": psnr(outputs["rgb"].detach(), image),
             "samples_per_ray": outputs["num_samples"].mean(),
@@ -494,6 +529,15 @@ class GearNeRFModel(Model):
         image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
         rgb = outputs["rgb"]
         metrics_dict = self.image_metrics(rgb, image)
+        metrics_dict["accumulation"] = float(outputs["accumulation"].mean())
+        metrics_dict["near_layer"] = near_layer(outputs["depth"], self.training_depth)
+        if metrics_dict["near_layer"] > NEAR_LAYER_WARNING and metrics_dict["accumulation"] > 0.9:
+            CONSOLE.log(
+                f"[yellow]Gear-NeRF: {100 * metrics_dict['near_layer']:.0f} % of the evaluation view ends closer than "
+                f"{NEAR_LAYER_DEPTH:g} x the training rays' median depth ({float(self.training_depth):.3g}), with "
+                f"accumulation {metrics_dict['accumulation']:.2f} and PSNR {metrics_dict['psnr']:.1f} dB: an opaque layer "
+                "sits in front of the camera, in space that no training ray sees from its side."
+            )
         images_dict = {
             "img": torch.cat([image, rgb], dim=1),
             "accumulation": colormaps.apply_colormap(outputs["accumulation"]),
