@@ -199,7 +199,7 @@ SCENES: Dict[str, Scene] = {
         parser_options=("--near", "0.3", "--far", "7"),
     ),
     "panoptic-video": Scene(
-        "panoptic-video", "real: the same capture in the Neural 3D Video layout, 304x168 (downscale 2), 31 cameras "
+        "panoptic-video", "real: CMU Panoptic basketball in the Neural 3D Video layout, 304x168 (downscale 2), 31 cameras "
         "(30 trained), frames 0-29", 30, "cam00", data=REAL / "panoptic_basketball_video", parser="neural-3d-video-data",
         parser_options=("--downscale-factor", "2", "--frame-count", "30"),
     ),
@@ -434,17 +434,21 @@ class Report:
         lines = [
             "# Speed / accuracy benchmark",
             "",
-            f"Base preset `{b.base_preset}` with its own defaults (gear-update schedule included), "
-            f"{b.preset_iterations()} iterations per run, device {b.device}. Held-out metrics on {b.eval_frames} "
-            f"frames of the held-out camera, evenly spaced over the video.{lpips_note} Mean ± sample standard "
-            f"deviation over seeds; `n` is the number of seeds ({b.seeds} for "
-            f"{', '.join(METHODS[m] for m in b.main_methods)}, 1 for the ablations, which ran on "
-            f"{', '.join(b.ablation_scenes)} only).",
+            f"Base preset `{b.base_preset}` with its own defaults (gear-update schedule included, scaled to the "
+            f"iterations of each scene), device {b.device}. Held-out metrics on {b.eval_frames} frames of the held-out "
+            f"camera, evenly spaced over the video.{lpips_note} Mean ± sample standard deviation over seeds; `n` is "
+            f"the number of seeds ({b.seeds} for {', '.join(METHODS[m] for m in b.main_methods)}"
+            + (f", 1 for the ablations, which ran on {', '.join(b.ablation_scenes)} only)." if b.ablations else ")."),
             "",
             "Scenes:",
             "",
         ]
-        lines += [f"- `{name}`: {SCENES[name].description}; held-out camera {SCENES[name].held_out}." for name in self.scenes]
+        for name in self.scenes:
+            iterations = sorted({r["iterations"] for m in self.methods(name) for r in self.runs(name, m)})
+            lines.append(
+                f"- `{name}`: {SCENES[name].description}; held-out camera {SCENES[name].held_out}; "
+                f"{', '.join(map(str, iterations))} iterations per run."
+            )
         budget_rule = (
             "Each run at its last checkpoint within the scene's budget (the shortest mean total training time of "
             + ", ".join(METHODS[m] for m in b.main_methods) + ")"
@@ -640,7 +644,8 @@ class Report:
                 if len(runs) > 1:
                     axis.fill_between(seconds, psnrs.min(axis=0), psnrs.max(axis=0), color=line.get_color(), alpha=0.15)
             axis.axvline(self.budget(scene), color="grey", linestyle="--", linewidth=0.8)
-            axis.set_title(f"{scene}")
+            iterations = sorted({r["iterations"] for m in self.methods(scene) for r in self.runs(scene, m)})
+            axis.set_title(f"{scene} ({', '.join(map(str, iterations))} iterations)")
             axis.set_xlabel("training CPU time (s)" if self.headline_clock == "cpu_seconds" else "training time (s)")
             axis.set_ylabel("held-out PSNR (dB)")
             axis.grid(alpha=0.3)
@@ -648,8 +653,8 @@ class Report:
         for axis in list(axes.flat)[len(self.scenes):]:
             axis.set_visible(False)
         b = self.benchmark
-        figure.suptitle(f"Held-out PSNR vs training time ({b.base_preset}, {b.device}, {b.preset_iterations()} "
-                        "iterations; mean over seeds, band: min-max; dashed: equal-time budget)", fontsize=9)
+        figure.suptitle(f"Held-out PSNR vs training time ({b.base_preset}, {b.device}; mean over seeds, band: min-max; "
+                        "dashed: equal-time budget)", fontsize=9)
         figure.tight_layout()
         figure.savefig(path, dpi=120)
         plt.close(figure)

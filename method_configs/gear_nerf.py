@@ -1,8 +1,8 @@
 """Gear-NeRF method presets for ``ns-train``.
 
 * ``gear-nerf``: the paper's settings (M = 32, N_gear = 4, n = 64, Adam with lr 0.02).
-* ``gear-nerf-small``: CPU preset (small planes, n = 24, 1024 rays per batch, 5,000 iterations: about 12 minutes
-  single-threaded on 30 frames of 30 cameras at 304x168).
+* ``gear-nerf-small``: CPU preset (small planes, n = 24, 1024 rays per batch, 5,000 iterations: 12-15 minutes of
+  CPU time single-threaded on 30 frames of 30 cameras at 304x168).
 * ``gear-nerf-baseline``: N_gear = 1, i.e. plain K-Planes with uniform sampling, sized as the small preset.
 
 Every preset has a per-camera appearance code and renders evaluation views from the near plane

@@ -470,7 +470,7 @@ def test_render_embedding_fills_the_valid_grid_and_decodes(loaded):
     rows = math.ceil(18 * backend.grid_size / 24)  # the image's longest side spans the whole grid
     assert np.abs(embedding.features[:, :rows]).sum(axis=0).min() > 0
     assert not embedding.features[:, rows:].any()  # SAM's padding stays zero
-    mask = segment(backend, embedding, np.array([[12.0, 9.0]]), np.array([1]))
+    mask = segment(backend, embedding, np.array([[12.5, 9.5]]), np.array([1]))  # the centre of pixel (9, 12)
     assert mask.shape == (18, 24) and mask.dtype == bool and mask[9, 12]
     box = np.array([4.0, 3.0, 14.0, 11.0])
     boxed = segment(backend, embedding, np.zeros((0, 2)), np.zeros(0), box)

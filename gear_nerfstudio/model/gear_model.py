@@ -41,6 +41,7 @@ from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from gear_nerfstudio import distributed
 from gear_nerfstudio.fields.gear_field import GearField, GearFieldHeadNames, sample_points
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
 from gear_nerfstudio.model.renderers import GearLevelRenderer, SamRenderer
@@ -446,10 +447,10 @@ class GearNeRFModel(Model):
 
     def get_metrics_dict(self, outputs: Dict[str, Any], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """PSNR of the batch and the mean number of samples per ray; a training batch also sets
-        ``training_depth``, the median depth of its rays (the reference of ``near_layer``)."""
+        ``training_depth``, the median depth of its rays averaged over processes (the reference of ``near_layer``)."""
         image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
         if self.training:
-            self.training_depth.copy_(outputs["depth"].detach().median())
+            self.training_depth.copy_(distributed.average(outputs["depth"].detach().median()))
         return {
             "psnr": psnr(outputs["rgb"].detach(), image),
             "samples_per_ray": outputs["num_samples"].mean(),
