@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from nerfstudio.utils.eval_utils import eval_setup
 
+from gear_nerfstudio.model.gear_model import psnr
+
 
 def main(config: Path, nears: list) -> None:
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
@@ -29,7 +31,7 @@ def main(config: Path, nears: list) -> None:
             with torch.no_grad():
                 outputs = model.get_outputs_for_camera(dataset.cameras[int(index) : int(index) + 1])
             truth = dataset.get_image_float32(int(index))[..., :3]
-            psnrs.append(-10 * np.log10(float(((outputs["rgb"] - truth) ** 2).mean())))
+            psnrs.append(float(psnr(outputs["rgb"], truth)))
             accumulations.append(float(outputs["accumulation"].mean()))
         print(f"near {near:.3f}: PSNR {np.mean(psnrs):.2f} dB, accumulation {np.mean(accumulations):.3f}")
 

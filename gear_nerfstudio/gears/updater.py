@@ -289,21 +289,23 @@ class GearUpdater:
 
     def psnr(self, views: List[Tuple[Cameras, Tensor]]) -> float:
         """PSNR of the renders of views (camera, ground truth) over all their pixels (``views_psnr``)."""
-        return views_psnr([(self.target.render_view(camera)["rgb"] - rgb).square().mean() for camera, rgb in views])
+        device = self.target.device
+        return views_psnr([(self.target.render_view(camera)["rgb"] - rgb.to(device)).square().mean() for camera, rgb in views])
 
     def view(self, dataset: InputDataset, image_index: int) -> Tuple[Cameras, Tensor]:
-        """Camera of an image, rescaled to the loss-map size, and the image resized to match."""
+        """Camera of an image, rescaled to the loss-map size (on the model's device), and the image resized to match
+        (on the CPU, where it is read)."""
         camera = dataset.cameras[image_index : image_index + 1].to(self.target.device)
         full_size = (int(camera.height[0, 0]), int(camera.width[0, 0]))
         camera.rescale_output_resolution(min(1.0, self.config.loss_map_size / max(full_size)))
         size = (int(camera.height[0, 0]), int(camera.width[0, 0]))
-        return camera, resized_image(dataset, image_index, size).to(self.target.device)
+        return camera, resized_image(dataset, image_index, size)
 
     def loss_map(self, image_index: int) -> LossMap:
         """Render a training view and its per-pixel loss L(r) = L_pho(r) + lambda L_SAM(r)."""
-        camera, rgb = self.view(self.views.train_dataset, image_index)
-        size = tuple(rgb.shape[:2])
-        image = rgb.cpu()
+        camera, image = self.view(self.views.train_dataset, image_index)
+        size = tuple(image.shape[:2])
+        rgb = image.to(self.target.device)
         outputs = self.target.render_view(camera)
         loss = (outputs["rgb"] - rgb).square().sum(-1)
         rgb_loss = loss.clone()
