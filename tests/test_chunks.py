@@ -1,5 +1,5 @@
 """ns-gear-chunks: a 24-frame video in 3 chunks, trained, rendered and evaluated as one video; resumed chunk by
-chunk; the Ray executor gives the local executor's checkpoints."""
+chunk (the Ray executor: test_chunks_ray.py)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 import torch
 from PIL import Image
 
-from gear_nerfstudio.chunks.plan import ChunkError, owners, plan_chunks
+from gear_nerfstudio.chunks.plan import ChunkError, owners, plan_chunks, position
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from tests.conftest import command, ns
 
@@ -41,6 +41,9 @@ def test_chunks_cover_the_window_and_blend_weights_are_continuous():
     # a frame that only one chunk holds is rendered by that chunk alone, at the chunk's own time of that frame
     assert [(c.index, w, t) for c, w, t in owners(chunks, 3.0)] == [(0, 1.0, 3 / 9)]
     assert [(c.index, w) for c, w, _ in owners(chunks, 20.0)] == [(2, 1.0)]
+    # a frame's time as a camera path stores it (float32) is that frame, at exactly its chunk's own time of it
+    assert owners(chunks, position(float(np.float32(12 / 23)), FRAMES)) == [(chunks[1], 1.0, 5 / 9)]
+    assert position(0.5, FRAMES) == 11.5
     with pytest.raises(ChunkError, match="overlap"):
         plan_chunks(FRAMES, 10, 5)
 
@@ -136,28 +139,6 @@ def test_train_again_resumes_only_the_stopped_chunk(chunked):
         f"error: {out / 'chunks.json'}: this folder holds chunks of another command (chunk_frames differ); "
         "use another --output-dir"
     )
-
-
-def test_ray_executor_gives_the_local_executors_checkpoints(tmp_path):
-    pytest.importorskip("ray")
-    scene = write_synthetic_scene(tmp_path / "scene", SyntheticSpec(dataset="n3d", width=24, height=18, frames=6, cameras=4))
-    args = train_args(scene, tmp_path / "cache", 20)
-    states = {}
-    for executor in ("local", "ray"):
-        out = tmp_path / executor
-        ns("ns-gear-chunks", "train", "--output-dir", str(out), "--chunk-frames", "3", "--executor", executor, "--",
-           *args, cwd=tmp_path)
-        states[executor] = [
-            torch.load(out / f"chunk_{k:03d}" / "gear-nerf-small" / "run" / "nerfstudio_models" / "step-000000019.ckpt",
-                       map_location="cpu", weights_only=False)["pipeline"]
-            for k in range(2)
-        ]
-    for local, ray in zip(states["local"], states["ray"]):
-        assert set(local) == set(ray)
-        for key in local:
-            assert torch.equal(local[key], ray[key]), key
-    # the two chunks model different frames: their radiance fields differ
-    assert not torch.equal(states["local"][0]["_model.field.basis.weight"], states["local"][1]["_model.field.basis.weight"])
 
 
 def test_a_window_that_is_not_a_video_is_refused_in_one_line(tmp_path):

@@ -71,8 +71,11 @@ def _ramp(position: float, previous: Chunk, chunk: Chunk) -> float:
 
 
 def position(time: float, num_frames: int) -> float:
-    """Frame position f = tau (T - 1) of a time of the whole video (clamped to [0, 1])."""
-    return min(max(time, 0.0), 1.0) * (num_frames - 1)
+    """Frame position f = tau (T - 1) of a time of the whole video (clamped to [0, 1]). A time within float32
+    rounding of a frame's (camera paths store times in float32) is that frame's, so that its chunk renders it at
+    exactly the chunk's own time of that frame, as ns-render does."""
+    frame = min(max(time, 0.0), 1.0) * (num_frames - 1)
+    return float(round(frame)) if abs(frame - round(frame)) <= 1e-6 * num_frames else frame
 
 
 def owners(chunks: List[Chunk], frame_position: float) -> List[Tuple[Chunk, float, float]]:
