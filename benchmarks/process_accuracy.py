@@ -29,8 +29,8 @@ from gear_nerfstudio.process.accuracy import pose_errors
 REPO = Path(__file__).resolve().parents[1]
 REAL = REPO.parent / "shared" / "data" / "real"
 CAPTURES = {
-    "panoptic_basketball_video": ("panoptic_basketball_video", ("--calibration-frames", "0", "45")),
-    "n3d_flame_steak_frame0": ("n3d_flame_steak_frame0", ("--calibration-frames", "0")),
+    "panoptic_basketball_video": ("panoptic_basketball_video", ()),
+    "n3d_flame_steak_frame0": ("n3d_flame_steak_frame0", ()),
 }
 
 
@@ -67,7 +67,7 @@ def main() -> None:
             good = int(((c <= 2) & (r <= 1)).sum())
             rows.append(
                 f"| {key} | {len(c)} | {c.mean():.2f} | {np.median(c):.2f} | {c.max():.2f} | {r.mean():.2f} | "
-                f"{np.median(r):.2f} | {r.max():.2f} | {good} / {len(c)} | {seconds:.0f} s | `{' '.join(extra)}` |"
+                f"{np.median(r):.2f} | {r.max():.2f} | {good} / {len(c)} | {seconds:.0f} s | {' '.join(extra) or 'defaults (instants: first, middle, last frame)'} |"
             )
             details.append(
                 f"- {key}: per camera (cam00, cam01, ...), centre % "
@@ -99,8 +99,10 @@ def main() -> None:
             "calibration instant is not enough (one run registered 2 of 31 cameras, another registered all 31 with",
             "one or more turned by 70-170 degrees), nor are 12-15 of its cameras with two instants (cameras 20-30 degrees",
             "apart at 608x336: some are not registered or registered upside down); `--calibration-frames 15 60`",
-            "registered cam24 and cam25 turned by 144 degrees. COLMAP runs multi-threaded, so repeated runs differ",
-            "slightly. The flame_steak file's own calibration comes from COLMAP on 2690x2016 images with fx != fy",
+            "registered cam24 and cam25 turned by 144 degrees, and `0 30 60` cam25 by 70 degrees (twice); `0 45 89`",
+            "(the start, middle and end of the video: the default) put all 31 within both targets in 4 runs of 4,",
+            "`0 45` in 1 of 2.",
+            "COLMAP runs multi-threaded, so repeated runs differ slightly. The flame_steak file's own calibration comes from COLMAP on 2690x2016 images with fx != fy",
             "(SOURCES.md); part of its 0.3-degree rotation difference may be that calibration's, not ours.",
             "",
             f"Command: `{command}`",

@@ -38,9 +38,9 @@ class ProcessCommand:
     """Folder of the rig's recordings: one video per camera, or one folder of frames per camera."""
     output_dir: Path
     """Scene folder to write (must not exist); train with `ns-train ... neural-3d-video-data --data <it>`."""
-    calibration_frames: Tuple[int, ...] = (0,)
+    calibration_frames: Optional[Tuple[int, ...]] = None
     """Instants (frames of the synchronised window) whose frames COLMAP calibrates from; several help a scene with
-    little texture at one instant."""
+    little texture at one instant. Default: the first, middle and last frames of the window."""
     camera_model: Literal[calibrate.CAMERA_MODELS] = "SIMPLE_RADIAL"  # type: ignore[valid-type]
     """COLMAP camera model of every camera (intrinsics shared by a camera's frames)."""
     camera_params: Optional[Tuple[float, ...]] = None
@@ -65,6 +65,8 @@ class ProcessCommand:
         check_frame_rates(cameras)
         offsets = self._offsets(cameras)
         firsts, count = sync.window(cameras, offsets)
+        if self.calibration_frames is None:
+            self.calibration_frames = (0, count // 2, count - 1)
         for instant in self.calibration_frames:
             if not 0 <= instant < count:
                 raise InputError(f"--calibration-frames {instant}: outside the synchronised window 0..{count - 1}")
