@@ -100,7 +100,7 @@ def main() -> None:
             "one or more turned by 70-170 degrees), nor are 12-15 of its cameras with two instants (cameras 20-30 degrees",
             "apart at 608x336: some are not registered or registered upside down); `--calibration-frames 15 60`",
             "registered cam24 and cam25 turned by 144 degrees, and `0 30 60` cam25 by 70 degrees (twice); `0 45 89`",
-            "(the start, middle and end of the video: the default) put all 31 within both targets in 4 runs of 4,",
+            "(the start, middle and end of the video: the default) put all 31 within both targets in 5 runs of 5,",
             "`0 45` in 1 of 2.",
             "COLMAP runs multi-threaded, so repeated runs differ slightly. The flame_steak file's own calibration comes from COLMAP on 2690x2016 images with fx != fy",
             "(SOURCES.md); part of its 0.3-degree rotation difference may be that calibration's, not ours.",
