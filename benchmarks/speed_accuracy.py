@@ -395,6 +395,10 @@ class Report:
         """CPU time of the training process on the CPU, wall-clock time on CUDA."""
         return "cpu_seconds" if self.benchmark.device == "cpu" else "seconds"
 
+    def iterations(self, scene: str) -> List[int]:
+        """The iteration counts of a scene's runs."""
+        return sorted({r["iterations"] for m in self.methods(scene) for r in self.runs(scene, m)})
+
     def budget(self, scene: str, clock: Optional[Clock] = None) -> float:
         """Equal-time budget of a scene on a clock (default the headline's): ``--time-budget``, or the shortest
         mean training time of the main methods."""
@@ -448,7 +452,7 @@ class Report:
             "",
         ]
         for name in self.scenes:
-            iterations = sorted({r["iterations"] for m in self.methods(name) for r in self.runs(name, m)})
+            iterations = self.iterations(name)
             lines.append(
                 f"- `{name}`: {SCENES[name].description}; held-out camera {SCENES[name].held_out}; "
                 f"{', '.join(map(str, iterations))} iterations per run."
@@ -648,7 +652,7 @@ class Report:
                 if len(runs) > 1:
                     axis.fill_between(seconds, psnrs.min(axis=0), psnrs.max(axis=0), color=line.get_color(), alpha=0.15)
             axis.axvline(self.budget(scene), color="grey", linestyle="--", linewidth=0.8)
-            iterations = sorted({r["iterations"] for m in self.methods(scene) for r in self.runs(scene, m)})
+            iterations = self.iterations(scene)
             axis.set_title(f"{scene} ({', '.join(map(str, iterations))} iterations)")
             axis.set_xlabel("training CPU time (s)" if self.headline_clock == "cpu_seconds" else "training time (s)")
             axis.set_ylabel("held-out PSNR (dB)")

@@ -7,12 +7,7 @@ from typing import Dict, Tuple
 
 import numpy as np
 
-
-def llff_cameras(poses_bounds: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """Camera-to-world rotations (OpenCV axes) and centres from N3D rows (LLFF columns [down, right, back])."""
-    pose = poses_bounds[:, :15].reshape(-1, 3, 5)
-    rotation = np.stack([pose[:, :, 1], pose[:, :, 0], -pose[:, :, 2]], axis=-1)
-    return rotation, pose[:, :, 3]
+from gear_nerfstudio.data.llff import llff_cameras
 
 
 def umeyama(source: np.ndarray, target: np.ndarray) -> Tuple[float, np.ndarray, np.ndarray]:

@@ -125,8 +125,7 @@ class ProcessCommand:
             task = progress.add_task("Decoding calibration frames", total=len(cameras) * len(instants))
             for camera, first in zip(cameras, firsts):
                 (images / camera.name).mkdir(parents=True)
-                for instant in instants:
-                    [rgb] = camera.frames(first + instant, 1)
+                for instant, rgb in zip(instants, camera.frames_at([first + instant for instant in instants])):
                     _save_png(rgb, images / camera.name / f"{instant:05d}.png")
                     progress.advance(task)
             result = calibrate.calibrate(

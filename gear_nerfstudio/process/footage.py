@@ -58,6 +58,14 @@ class Footage:
         if produced < count:
             raise InputError(f"{self.path}: decoding stopped after frame {first + produced - 1} of {first + count - 1}")
 
+    def frames_at(self, indices: Sequence[int]) -> List[np.ndarray]:
+        """RGB frames at sorted `indices`: a video is decoded once, up to the last of them."""
+        if not self.is_video:
+            return [next(self.frames(index, 1)) for index in indices]
+        wanted = set(indices)
+        span = self.frames(indices[0], indices[-1] - indices[0] + 1)
+        return [rgb for index, rgb in enumerate(span, start=indices[0]) if index in wanted]
+
 
 def read_footage(folder: Path, frame_rate: float) -> List[Footage]:
     """The cameras of `folder`, sorted by name; `frame_rate` applies to folders of frames."""

@@ -15,6 +15,7 @@ from typing import Callable, List, Sequence, Tuple
 
 import numpy as np
 
+from gear_nerfstudio.data.llff import llff_row
 from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.process.calibrate import Calibration
 from gear_nerfstudio.process.footage import Footage
@@ -107,11 +108,9 @@ def near_far(depths: np.ndarray) -> Tuple[float, float]:
 
 def poses_bounds(c2w: np.ndarray, outputs: Sequence[Output], bounds: Sequence[Tuple[float, float]]) -> np.ndarray:
     """N3D's (N, 17) rows: LLFF rotation columns [down, right, back] and centre, [H, W, focal], near, far."""
-    rows = []
-    for pose, output, (near, far) in zip(c2w, outputs, bounds):
-        llff = np.stack([pose[:, 1], pose[:, 0], -pose[:, 2], pose[:, 3], [output.height, output.width, output.focal]], 1)
-        rows.append(np.concatenate([llff.reshape(-1), [near, far]]))
-    return np.array(rows)
+    return np.array(
+        [llff_row(pose, (o.height, o.width, o.focal), near, far) for pose, o, (near, far) in zip(c2w, outputs, bounds)]
+    )
 
 
 def transforms_frame(name: str, source: Footage, c2w: np.ndarray, output: Output) -> dict:

@@ -17,6 +17,7 @@ import numpy as np
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from gear_nerfstudio.data.llff import llff_row
 from gear_nerfstudio.tools.synthetic.rigs import immersive_rig, n3d_rig, technicolor_rig
 from gear_nerfstudio.tools.synthetic.scene import MotionKind, Render, RigCamera, SyntheticScene
 from gear_nerfstudio.tools.video import write_video
@@ -96,14 +97,11 @@ def _write_n3d(output: Path, scene: SyntheticScene, cameras: Sequence[RigCamera]
     for camera in cameras:
         renders = _render_camera(output, scene, camera, spec.frames)
         write_video(output / f"{camera.name}.mp4", [r.rgb for r in renders], spec.fps)
-        # LLFF camera-to-world columns: [down, right, back] = [y_cv, x_cv, -z_cv] in world coordinates.
-        c2w_cv = camera.rotation.T
-        rotation = np.stack([c2w_cv[:, 1], c2w_cv[:, 0], -c2w_cv[:, 2]], axis=1)
+        c2w = np.concatenate([camera.rotation.T, camera.centre[:, None]], axis=1)
         s = spec.calibration_scale
-        hwf = np.array([camera.height * s, camera.width * s, camera.fx * s])
-        pose = np.concatenate([rotation, camera.centre[:, None], hwf[:, None]], axis=1)
         depths = np.concatenate([r.depth[np.isfinite(r.depth)] for r in renders])
-        poses.append(np.concatenate([pose.reshape(-1), [0.9 * depths.min(), 1.1 * depths.max()]]))
+        hwf = (camera.height * s, camera.width * s, camera.fx * s)
+        poses.append(llff_row(c2w, hwf, 0.9 * depths.min(), 1.1 * depths.max()))
     np.save(output / "poses_bounds.npy", np.stack(poses))
 
 
