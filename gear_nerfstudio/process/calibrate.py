@@ -12,6 +12,7 @@ between instants add points across the scene. The largest reconstruction is kept
 from __future__ import annotations
 
 import itertools
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
@@ -46,15 +47,19 @@ class Calibration:
 
 def calibrate(
     images: Path,
-    work: Path,
     names: Sequence[str],
     instants: Sequence[int],
     camera_model: str,
     camera_params: Optional[Sequence[float]],
     progress,
 ) -> Calibration:
-    """Calibrate the cameras `names` from `<images>/<name>/<instant:05d>.png` (scratch files in `work`);
-    `progress` is a rich Progress."""
+    """Calibrate the cameras `names` from `<images>/<name>/<instant:05d>.png`; `progress` is a rich Progress. COLMAP's
+    scratch files (databases, pair list, models) live in a temporary folder."""
+    with tempfile.TemporaryDirectory() as work:
+        return _calibrate(images, Path(work), names, instants, camera_model, camera_params, progress)
+
+
+def _calibrate(images: Path, work: Path, names, instants, camera_model, camera_params, progress) -> Calibration:
     import pycolmap
 
     pycolmap.logging.minloglevel = 2  # COLMAP's own log: errors only; progress shows what runs

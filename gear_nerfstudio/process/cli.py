@@ -129,7 +129,7 @@ class ProcessCommand:
                     _save_png(rgb, images / camera.name / f"{instant:05d}.png")
                     progress.advance(task)
             result = calibrate.calibrate(
-                images, colmap, [c.name for c in cameras], instants, self.camera_model,
+                images, [c.name for c in cameras], instants, self.camera_model,
                 self.camera_params, progress,
             )
             outputs = write.output_cameras(result)
@@ -169,10 +169,7 @@ class ProcessCommand:
         plot_rig(folder / "rig.png", c2w, names, result.points, result.colors)
         (colmap / "sparse").mkdir()
         result.reconstruction.write(colmap / "sparse")
-        for scratch in ("images", "models"):
-            shutil.rmtree(colmap / scratch)
-        for scratch in ("frames.db", "cameras.db", "pairs.txt"):
-            (colmap / scratch).unlink()
+        shutil.rmtree(images)
         CONSOLE.print(
             f"{len(cameras)} cameras registered, {len(result.points)} points, mean reprojection error "
             f"{summary['reprojection_error_px']:.2f} px; {count} frames of {outputs[0].width}x{outputs[0].height}; "
