@@ -332,7 +332,8 @@ def render_child(config_path: Path, result_path: Path, divisor: int, repeats: in
     seconds = []
     for _ in range(repeats):
         entered = time.perf_counter()
-        outputs = pipeline.model.get_outputs_for_camera(camera)
+        with pipeline.model.rendering("num_samples"):
+            outputs = pipeline.model.get_outputs_for_camera(camera)
         seconds.append(time.perf_counter() - entered)
     result = {
         "width": int(camera.width), "height": int(camera.height), "seconds": seconds,

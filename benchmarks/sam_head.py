@@ -84,7 +84,8 @@ class Run:
         sam_errors, targets, rgb_errors = [], [], []
         for index in range(len(dataset)):
             camera = dataset.cameras[index : index + 1].to(model.device)
-            outputs = model.get_outputs_for_camera(camera)
+            with model.rendering("sam"):
+                outputs = model.get_outputs_for_camera(camera)
             height, width = outputs["rgb"].shape[:2]
             ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
             pixels = torch.stack([xs, ys], dim=-1).reshape(-1, 2).float() + 0.5

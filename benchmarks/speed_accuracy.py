@@ -738,7 +738,8 @@ def evaluate_checkpoints(
     cuda = torch.device(pipeline.device).type == "cuda"
 
     def render(index: int) -> Dict[str, Any]:
-        return model.get_outputs_for_camera(dataset.cameras[index : index + 1].to(pipeline.device))
+        with model.rendering("num_samples"):
+            return model.get_outputs_for_camera(dataset.cameras[index : index + 1].to(pipeline.device))
 
     render(frames[0])  # warm-up, untimed
     results = []

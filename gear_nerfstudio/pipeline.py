@@ -1,5 +1,5 @@
 """The Gear-NeRF pipeline: nerfstudio's VanillaPipeline that owns the SAM backend (Sec 4.2), the gear-update
-callback (Sec 4.3) and the viewer's tracking controls (Sec 4.5).
+callback (Sec 4.3), the viewer's tracking controls (Sec 4.5) and its resolutions (``viewer_speed``).
 
 The backend is built once and handed to the datamanager (its encoder gives the targets of Eq 9), to the gear
 updates (its decoder gives the upshift masks) and to tracking (its decoder gives the tracked masks). The
@@ -27,6 +27,7 @@ from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
 from gear_nerfstudio.sam.config import BuiltinSamConfig, SamConfigChoice
 from gear_nerfstudio.sam.interface import SamBackend
 from gear_nerfstudio.tracking.viewer import ViewerTracking
+from gear_nerfstudio.viewer_speed import ViewerSpeed
 
 
 @dataclass
@@ -75,6 +76,7 @@ class GearPipeline(VanillaPipeline):
         self.gear_update_state = GearUpdateState(self.model.gear_assignment(), config.gear_updates.views_per_update)
         self.viewer_tracking = ViewerTracking(self.model, self.sam_backend)
         self.model.render_hooks.append(self.viewer_tracking.render_hook)
+        self.viewer_speed = ViewerSpeed(self.model)
 
     def get_average_eval_image_metrics(
         self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False

@@ -261,7 +261,7 @@ def test_times_exactly_zero_and_one(num_frames):
     t = torch.tensor([[0.0], [1.0]])
     for gear, t_res in enumerate(field.time_resolutions, start=1):
         values = field.time_planes[gear - 1](torch.stack([torch.cat([x[:, :1], t * 2 - 1], -1)] * 3))
-        assert values[0, :, 0].tolist() == [0.0, float(t_res - 1)]
+        assert values[0, 0, :].tolist() == [0.0, float(t_res - 1)]
 
 
 def test_one_frame_field_and_model():

@@ -24,8 +24,10 @@ from gear_nerfstudio.fields.gear_function import GearFunction, gear_level
 from gear_nerfstudio.fields.planes import (
     TIME_PLANE_AXES,
     PlaneTriple,
+    bilinear,
     broadcast_times,
     density_activation,
+    flat_features,
     init_space_plane,
     init_time_plane,
     normalize_positions,
@@ -209,38 +211,56 @@ class GearField(Field):
     def gear_feature(self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"], gear: int) -> Float[Tensor, "N M"]:
         """Eq 3: f^G at normalised positions with the planes of gear ``gear`` (1-based)."""
         products = self.space_planes(space_coords(x)) * self.time_planes[gear - 1](time_coords(x, t))
-        return self.basis(products.transpose(0, 1).reshape(x.shape[0], -1))
+        return self.basis(flat_features(products))
 
     def gear_features(
         self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"], levels: Int[Tensor, "N"]
     ) -> Float[Tensor, "N M"]:
-        """Eq 6-7: f = sum_G m_G f^G, evaluating each sample only with the planes of its own gear."""
-        sorted_levels, order = torch.sort(levels)
-        # samples per gear from the sorted levels (p in 1..N_gear, Eq 5): bincount would sync with the host
-        bounds = torch.searchsorted(sorted_levels, torch.arange(1, self.num_gears + 2, device=levels.device))
-        counts = bounds[1:] - bounds[:-1]
-        training = self.training and torch.is_grad_enabled()
-        if not training:
-            counts = counts.tolist()
-        else:
+        """Eq 3, 6-7: f = sum_G m_G f^G = sum_j B_j (h_j ⊙ k_j^p) with each sample's own gear p, every gear in one
+        lookup per resolution: the gears' space-time planes are stacked along time (``stacked_time_planes``) and a
+        sample's time coordinate points into its gear's rows. In training the stack holds the gears in use only (a
+        gear without samples gets no gradient); the samples' columns are claimed first (``claim_columns``)."""
+        if self.training and torch.is_grad_enabled():
             new = self.claim_columns(x, levels)
-            # the field's one host sync: samples per gear and, after the claims, the gears in use and the gears with
-            # newly used columns (under DDP both include the other processes' claims, so every process decides alike)
-            host = torch.cat([counts, self.used_gears.long(), new.flatten(1).any(dim=1).long()]).tolist()
-            counts, used, renewed = (host[k * self.num_gears : (k + 1) * self.num_gears] for k in range(3))
-            self.used_gears_seen = (self.used_columns, self.used_columns._version, [bool(u) for u in used])
-            self.inherit_new_columns(new, [bool(r) for r in renewed])
-        chunks = []
-        start = 0
-        for gear, count in enumerate(counts, start=1):
-            if count:
-                index = order[start : start + count]
-                chunks.append(self.gear_feature(x[index], t[index], gear))
-            start += count
-        if not chunks:
-            return x.new_zeros((0, self.feature_dim))
-        sorted_features = torch.cat(chunks)
-        return torch.zeros_like(sorted_features).index_copy(0, order, sorted_features)
+            # the field's one host sync: after the claims, the gears in use and the gears with newly used columns
+            # (under DDP both include the other processes' claims, so every process decides alike)
+            used, renewed = torch.stack([self.used_gears, new.flatten(1).any(dim=1)]).tolist()
+            self.used_gears_seen = (self.used_columns, self.used_columns._version, used)
+            self.inherit_new_columns(new, renewed)
+            gears = [gear for gear in range(1, self.num_gears + 1) if used[gear - 1]]
+        else:
+            gears = list(range(1, self.num_gears + 1))
+        planes, first_rows = self.stacked_time_planes(gears)
+        rows = torch.tensor(self.time_resolutions, dtype=x.dtype, device=x.device)[levels - 1]
+        row = first_rows[levels - 1] + t[:, 0] * (rows - 1)
+        y = row * (2.0 / (planes[0].shape[-2] - 1)) - 1.0
+        time = torch.stack([torch.stack([x[:, axis], y], dim=-1) for axis in TIME_PLANE_AXES])
+        space = self.space_planes.lookups(space_coords(x))
+        # B applied resolution by resolution: no concatenated copy of the features
+        basis = self.basis.weight.view(self.feature_dim, 3, len(planes), -1)
+        features = sum(
+            basis[:, :, r].reshape(self.feature_dim, -1) @ (space[r] * bilinear(plane, time)).flatten(0, 1)
+            for r, plane in enumerate(planes)
+        )
+        return features.T
+
+    def stacked_time_planes(self, gears: Sequence[int]) -> Tuple[List[Tensor], Tensor]:
+        """Per resolution, the space-time planes of ``gears`` stacked along time, each gear's rows framed by copies
+        of its first and last row (so that rounding at a block's edge reads the same gear); and the stack row of
+        each gear's first row (N_gear values, 0 for gears not stacked)."""
+        planes = []
+        for r in range(len(self.resolutions)):
+            blocks = []
+            for gear in gears:
+                plane = self.time_planes[gear - 1].planes[r]
+                blocks += [plane[:, :, :1], plane, plane[:, :, -1:]]
+            planes.append(torch.cat(blocks, dim=2))
+        first_rows = [0] * self.num_gears
+        row = 0
+        for gear in gears:
+            first_rows[gear - 1] = row + 1
+            row += self.time_resolutions[gear - 1] + 2
+        return planes, torch.tensor(first_rows, dtype=torch.float32, device=planes[0].device)
 
     def get_density(self, ray_samples: RaySamples) -> Tuple[Float[Tensor, "*bs 1"], Float[Tensor, "*bs E"]]:
         """Density at the samples' positions and times, and what ``get_outputs`` needs of them: the density MLP's
@@ -249,28 +269,53 @@ class GearField(Field):
         shape = positions.shape[:-1]
         x, inside = normalize_positions(positions.reshape(-1, 3), self.aabb, self.spatial_distortion)
         t = broadcast_times(ray_samples.times, shape, positions).reshape(-1, 1)
-        with torch.no_grad():
-            levels = gear_level(self.gear_function(x, t), self.num_gears)
+        density, embedding = self.normalised_density(x, t, inside)
+        return density.reshape(*shape, 1), embedding.reshape(*shape, -1)
+
+    def normalised_density(
+        self,
+        x: Float[Tensor, "N 3"],
+        t: Float[Tensor, "N 1"],
+        inside: Optional[Bool[Tensor, "N"]] = None,
+        levels: Optional[Int[Tensor, "N"]] = None,
+    ) -> Tuple[Float[Tensor, "N 1"], Float[Tensor, "N E"]]:
+        """``get_density`` at plane coordinates x in [-1, 1]^3 (``normalize_positions``) and times t in [0, 1]:
+        zero density where ``inside`` is False; the embedding holds the geometry features, f (Eq 7) and p (Eq 5).
+        ``levels``: the samples' gear levels p when the caller has them (Eq 5 otherwise)."""
+        if levels is None:
+            with torch.no_grad():
+                levels = gear_level(self.gear_function(x, t), self.num_gears)
         features = self.gear_features(x, t, levels)
         hidden = self.density_net(features)
-        density = torch.where(inside[:, None], density_activation(hidden[:, :1]), torch.zeros_like(hidden[:, :1]))
+        density = density_activation(hidden[:, :1])
+        if inside is not None:
+            density = torch.where(inside[:, None], density, torch.zeros_like(density))
         embedding = torch.cat([hidden[:, 1:], features, levels[:, None].to(features.dtype)], dim=-1)
-        return density.reshape(*shape, 1), embedding.reshape(*shape, -1)
+        return density, embedding
 
     def get_outputs(self, ray_samples: RaySamples, density_embedding: Optional[Tensor] = None) -> FieldOutputs:
         """Colour (view-dependent, spherical harmonics; with the sample's camera appearance code when the field has
         codes, the mean code when the sample has none), SAM embedding (Sec 4.2) and gear level of each sample."""
         assert density_embedding is not None, "the gear field's outputs need get_density's embedding"
+        geometry, features, levels = self.split_embedding(density_embedding)
+        return {
+            FieldHeadNames.RGB: self.colour(ray_samples, geometry),
+            GearFieldHeadNames.SAM: self.sam_net(features),
+            GearFieldHeadNames.GEAR_LEVEL: levels,
+        }
+
+    def split_embedding(self, density_embedding: Tensor) -> Tuple[Tensor, Tensor, Int[Tensor, "*bs"]]:
+        """``get_density``'s embedding as (geometry features, f, gear level p)."""
         geometry, features, levels = density_embedding.split([self.geo_feat_dim, self.feature_dim, 1], dim=-1)
+        return geometry, features, levels[..., 0].round().long()
+
+    def colour(self, ray_samples: RaySamples, geometry: Float[Tensor, "*bs G"]) -> Float[Tensor, "*bs 3"]:
+        """Colour of each sample from its geometry features and view direction (and appearance code)."""
         inputs = [self.direction_encoding(F.normalize(ray_samples.frustums.directions, dim=-1)), geometry]
         if self.appearance is not None:
             codes = (ray_samples.metadata or {}).get(APPEARANCE)
             inputs.append(self.appearance.mean_code().expand(*geometry.shape[:-1], -1) if codes is None else codes)
-        return {
-            FieldHeadNames.RGB: self.color_net(torch.cat(inputs, dim=-1)),
-            GearFieldHeadNames.SAM: self.sam_net(features),
-            GearFieldHeadNames.GEAR_LEVEL: levels[..., 0].round().long(),
-        }
+        return self.color_net(torch.cat(inputs, dim=-1))
 
     def density_fn(
         self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*bs 1"]] = None

@@ -54,4 +54,4 @@ class GearFunction(nn.Module):
     def forward(self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N"]:
         """g at normalised positions x in [-1, 1]^3 and times t in [0, 1]."""
         products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
-        return 1.0 + products.sum(dim=(0, 2))
+        return 1.0 + products.sum(dim=(0, 1))

@@ -12,7 +12,7 @@
 
 from __future__ import annotations
 
-from typing import Callable, Optional, Sequence, Tuple
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -106,14 +106,26 @@ class PlaneTriple(nn.Module):
             init(plane)
             self.planes.append(nn.Parameter(plane))
 
-    def forward(self, coords: Float[Tensor, "3 N 2"]) -> Float[Tensor, "3 N out"]:
-        """Features of the three planes, resolutions concatenated (out = C * num_resolutions)."""
-        grid = coords[:, :, None, :]
-        features = [
-            F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True)[..., 0]
-            for plane in self.planes
-        ]
-        return torch.cat(features, dim=1).transpose(1, 2)
+    def forward(self, coords: Float[Tensor, "3 N 2"]) -> Float[Tensor, "3 out N"]:
+        """Features of the three planes, resolutions concatenated (out = C * num_resolutions), channels first as
+        grid_sample gives them (``flat_features`` feeds them to a linear map without a transposed copy)."""
+        return torch.cat(self.lookups(coords), dim=1)
+
+    def lookups(self, coords: Float[Tensor, "3 N 2"]) -> List[Float[Tensor, "3 C N"]]:
+        """Features of the three planes, one tensor per resolution."""
+        return [bilinear(plane, coords) for plane in self.planes]
+
+
+def bilinear(planes: Float[Tensor, "3 C H W"], coords: Float[Tensor, "3 N 2"]) -> Float[Tensor, "3 C N"]:
+    """Bilinear lookup of three planes at (W, H) coordinates in [-1, 1] (corners aligned, clamped to the border)."""
+    grid = coords[:, :, None, :]
+    return F.grid_sample(planes, grid, mode="bilinear", padding_mode="border", align_corners=True)[..., 0]
+
+
+def flat_features(products: Float[Tensor, "3 out N"]) -> Float[Tensor, "N 3out"]:
+    """The three planes' features of each sample side by side (plane-major, as B = [B_1 B_2 B_3] of Eq 3 reads
+    them): a transposed view, no copy."""
+    return products.reshape(-1, products.shape[-1]).T
 
 
 def init_space_plane(plane: Tensor) -> None:

@@ -14,6 +14,7 @@ from gear_nerfstudio.fields.planes import (
     PlaneTriple,
     broadcast_times,
     density_activation,
+    flat_features,
     init_space_plane,
     init_time_plane,
     normalize_positions,
@@ -56,7 +57,7 @@ class ProposalDensityField(nn.Module):
         x, inside = normalize_positions(positions.reshape(-1, 3), self.aabb, self.spatial_distortion)
         t = broadcast_times(times, shape, positions).reshape(-1, 1)
         products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
-        raw = self.decoder(products.transpose(0, 1).reshape(x.shape[0], -1))
+        raw = self.decoder(flat_features(products))
         density = torch.where(inside[:, None], density_activation(raw), torch.zeros_like(raw))
         return density.reshape(*shape, 1)
 

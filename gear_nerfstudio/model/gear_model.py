@@ -13,7 +13,7 @@ import contextlib
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Set, Tuple, Type
 
 import matplotlib
 import numpy as np
@@ -44,6 +44,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from gear_nerfstudio import distributed
 from gear_nerfstudio.fields.gear_field import GearField, GearFieldHeadNames, sample_points
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
+from gear_nerfstudio.model.image_render import render_image
 from gear_nerfstudio.model.renderers import GearLevelRenderer, SamRenderer
 from gear_nerfstudio.model.split_sampler import SplitSampler
 
@@ -145,6 +146,13 @@ class GearNeRFModelConfig(ModelConfig):
     """Proposal (interlevel) loss, proposal base sampler only."""
     distortion_loss_mult: float = 1e-3
     """Distortion loss on the base samples, proposal base sampler only."""
+    render_outputs: Tuple[str, ...] = ("rgb", "depth", "accumulation", "gear")
+    """Outputs of full-image renders (viewer, ns-render, ns-eval); add "sam", "gear_level" or "num_samples" to
+    compute those as well (the SAM feature map costs an MLP per sample and 256 channels per pixel)."""
+    render_chunk_samples: Optional[int] = None
+    """Samples evaluated at once in full-image renders; a chunk takes as many rays as fit (the memory bound). None:
+    2^15 on the CPU (the fastest of 2^13-2^17 on the real capture, `benchmarks/results/render_speed.md`), 2^19 on
+    a GPU (not measured: no GPU was lent to the session that wrote this)."""
 
 
 MIN_MSE = 1e-10
@@ -280,6 +288,8 @@ class GearNeRFModel(Model):
         self.render_hooks: List[Callable[[Cameras, Dict[str, Tensor]], Dict[str, Tensor]]] = []
         """Extra outputs of full-image renders (``get_outputs_for_camera``), such as the viewer's tracked mask."""
         self.warned_no_time = False
+        self.extra_outputs: Set[str] = set()
+        """Outputs that full-image renders compute beside ``render_outputs`` (``rendering``)."""
         self.register_buffer("training_depth", torch.zeros(()))
 
     def gear_values(
@@ -361,14 +371,13 @@ class GearNeRFModel(Model):
         accumulation = self.renderer_accumulation(weights=weights)
         sam = self.field.lift_sam(self.renderer_sam(split, weights, field_outputs[GearFieldHeadNames.SAM]), accumulation)
         gear_level = self.renderer_gear_level(split, weights, field_outputs[GearFieldHeadNames.GEAR_LEVEL])
-        gear_fraction = ((gear_level - 1.0) / max(self.config.num_gears - 1, 1)).clamp(0.0, 1.0)
         outputs: Dict[str, Any] = {
             "rgb": rgb,
             "depth": self.renderer_depth(weights=weights, ray_samples=samples),
             "accumulation": accumulation,
             "sam": sam,
             "gear_level": gear_level,
-            "gear": self.gear_colors[(gear_fraction.detach().nan_to_num(0.0) * 255).long()[..., 0]],
+            "gear": self.gear_image(gear_level),
             "num_samples": split.num_samples_per_ray[:, None].to(weights.dtype),
         }
         if self.training:
@@ -389,10 +398,31 @@ class GearNeRFModel(Model):
                 )
         return outputs
 
+    def gear_image(self, gear_level: Float[Tensor, "*bs 1"]) -> Float[Tensor, "*bs 3"]:
+        """The "gear" output: the rendered gear level on the turbo colour map, gear 1 to N_gear."""
+        fraction = ((gear_level.detach() - 1.0) / max(self.config.num_gears - 1, 1)).clamp(0.0, 1.0)
+        return self.gear_colors[(fraction.nan_to_num(0.0) * 255).long()[..., 0]]
+
+    @contextlib.contextmanager
+    def rendering(self, *names: str) -> Iterator[None]:
+        """Full-image renders inside also compute the outputs ``names`` (beside the config's ``render_outputs``)."""
+        before = self.extra_outputs
+        self.extra_outputs = before | set(names)
+        try:
+            yield
+        finally:
+            self.extra_outputs = before
+
+    @torch.no_grad()
+    def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        """Full-image renders: ``image_render.render_image`` (only the outputs asked for, in large chunks)."""
+        return render_image(self, camera_ray_bundle, self.extra_outputs)
+
     @torch.no_grad()
     def get_outputs_for_camera(self, camera: Cameras, obb_box: Optional[OrientedBox] = None) -> Dict[str, Tensor]:
-        """nerfstudio's full-image render, plus the outputs of the ``render_hooks``. A camera without a time is
-        rendered at time 0, with a warning (once) for a video: ``ns-render interpolate`` drops the times."""
+        """The model's full-image render (``get_outputs_for_camera_ray_bundle``), plus the outputs of the
+        ``render_hooks``. A camera without a time is rendered at time 0, with a warning (once) for a video:
+        ``ns-render interpolate`` drops the times."""
         if camera.times is None and self.num_frames > 1 and not self.warned_no_time:
             CONSOLE.log(
                 "[yellow]Gear-NeRF: a camera without a time is rendered at time 0 (ns-render interpolate drops the "
@@ -411,9 +441,10 @@ class GearNeRFModel(Model):
 
     @torch.no_grad()
     def render_view(self, camera: Cameras) -> Dict[str, Tensor]:
-        """A full render of one camera in evaluation mode (no sample jitter), restoring the mode afterwards."""
+        """A full render of one camera in evaluation mode (no sample jitter), restoring the mode afterwards, with the
+        SAM feature map (Eq 8) beside the config's ``render_outputs`` (the gear updates' loss maps use it)."""
         rays = camera.to(self.device).generate_rays(camera_indices=0, keep_shape=True)
-        with evaluating(self):
+        with evaluating(self), self.rendering("sam"):
             return self.get_outputs_for_camera_ray_bundle(rays)
 
     @torch.no_grad()

@@ -59,7 +59,7 @@ def _render(model: "Model", camera: Cameras, time: float, pixels: Tensor) -> Dic
     """Model outputs for rays through pixel coordinates (..., 2) = (x, y) of a camera at a time."""
     camera = single_camera(camera, time).to(model.device)
     rays = camera.generate_rays(camera_indices=0, coords=pixels[..., [1, 0]].to(model.device))
-    with evaluating(model):
+    with evaluating(model), model.rendering("sam"):
         return model.get_outputs_for_camera_ray_bundle(rays)
 
 
