@@ -31,7 +31,7 @@ from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthet
 from gear_nerfstudio.tracking.click import project_prompt
 from gear_nerfstudio.tracking.propagation import render_embedding, track_view
 from gear_nerfstudio.tracking.viewer import OUTPUT, Selection, highlight
-from gear_nerfstudio.viewer_speed import moving_rate, still_resolution
+from gear_nerfstudio.viewer_speed import STILL_SECONDS, moving_rate, still_resolution
 from tests.conftest import BIN, ns
 
 STATIC_SPHERE, FAST_SPHERE = 1, 3
@@ -326,9 +326,14 @@ def press(driver, element, key: str) -> None:
     ActionChains(driver).send_keys(key).perform()
 
 
+SETTLED = 2 * STILL_SECONDS + 1.5
+"""Seconds between two equal screenshots of a settled view: the viewer shows its frame at the moving resolution
+until the still view ('Max res', about STILL_SECONDS to render, more under load, plus the tracked mask) replaces it."""
+
+
 def settled_view(driver, box, timeout: float, differs_from=None) -> np.ndarray:
     """A screenshot whose scene area is no longer blank, differs from `differs_from` (when given) and is
-    the same in two screenshots 1.5 s apart, i.e. the viewer has sent its final render."""
+    the same in two screenshots ``SETTLED`` s apart, i.e. the viewer has sent its final render."""
     x0, y0, x1, y1 = box
     previous = [None]
 
@@ -343,7 +348,7 @@ def settled_view(driver, box, timeout: float, differs_from=None) -> np.ndarray:
             return None
         return shot if stable else None
 
-    return wait_for(ready, timeout, "a rendered frame", interval=1.5)
+    return wait_for(ready, timeout, "a rendered frame", interval=SETTLED)
 
 
 def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, browser, viewer, tmp_path):
