@@ -453,11 +453,10 @@ def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, bro
     before = settled_view(driver, box, 60, differs_from=shown)
     ActionChains(driver).move_to_element(canvas_element).click_and_hold().move_by_offset(60, 0).release().perform()
     moved = time.monotonic()
-    redrawn = wait_for(
-        lambda: (lambda shot: shot if np.abs(block_means(shot, box) - block_means(before, box)).mean() > 1.0 else None)(
-            screenshot(driver)
-        ),
-        30, "the moved camera's render", interval=0.05,
-    )
+    def redrawn_view():
+        shot = screenshot(driver)
+        return shot if np.abs(block_means(shot, box) - block_means(before, box)).mean() > 1.0 else None
+
+    redrawn = wait_for(redrawn_view, 30, "the moved camera's render", interval=0.05)
     print(f"moved camera redrawn {time.monotonic() - moved:.2f} s after the drag")
     Image.fromarray(redrawn.astype(np.uint8)).save(tmp_path / "moved.png")

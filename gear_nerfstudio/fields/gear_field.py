@@ -157,6 +157,7 @@ class GearField(Field):
             PlaneTriple(feature_dim, [(t_res, r) for r in resolutions], init_time_plane)
             for t_res in self.time_resolutions
         )
+        self.register_buffer("gear_rows", torch.tensor(self.time_resolutions, dtype=torch.float32), persistent=False)
         self.resolutions = [int(r) for r in resolutions]
         # Columns (spatial cells) of each gear's space-time planes that a training sample has touched, per
         # gear, resolution and plane. A gear with none gets no gradient, no regulariser and so no optimizer step
@@ -227,12 +228,14 @@ class GearField(Field):
             used, renewed = torch.stack([self.used_gears, new.flatten(1).any(dim=1)]).tolist()
             self.used_gears_seen = (self.used_columns, self.used_columns._version, used)
             self.inherit_new_columns(new, renewed)
-            gears = [gear for gear in range(1, self.num_gears + 1) if used[gear - 1]]
+            stacked = self.used_gears
         else:
-            gears = list(range(1, self.num_gears + 1))
-        planes, first_rows = self.stacked_time_planes(gears)
-        rows = torch.tensor(self.time_resolutions, dtype=x.dtype, device=x.device)[levels - 1]
-        row = first_rows[levels - 1] + t[:, 0] * (rows - 1)
+            used, stacked = [True] * self.num_gears, torch.ones_like(self.gear_rows)
+        planes = self.stacked_time_planes([gear for gear in range(1, self.num_gears + 1) if used[gear - 1]])
+        # each stacked gear takes its rows and two frame rows; its first row follows the frame row above it
+        block = (self.gear_rows + 2) * stacked
+        first_rows = block.cumsum(0) - block + 1
+        row = first_rows[levels - 1] + t[:, 0] * (self.gear_rows[levels - 1] - 1)
         y = row * (2.0 / (planes[0].shape[-2] - 1)) - 1.0
         time = torch.stack([torch.stack([x[:, axis], y], dim=-1) for axis in TIME_PLANE_AXES])
         space = self.space_planes.lookups(space_coords(x))
@@ -244,10 +247,9 @@ class GearField(Field):
         )
         return features.T
 
-    def stacked_time_planes(self, gears: Sequence[int]) -> Tuple[List[Tensor], Tensor]:
-        """Per resolution, the space-time planes of ``gears`` stacked along time, each gear's rows framed by copies
-        of its first and last row (so that rounding at a block's edge reads the same gear); and the stack row of
-        each gear's first row (N_gear values, 0 for gears not stacked)."""
+    def stacked_time_planes(self, gears: Sequence[int]) -> List[Tensor]:
+        """Per resolution, the space-time planes of ``gears`` stacked along time in gear order, each gear's rows
+        framed by copies of its first and last row (so that rounding at a block's edge reads the same gear)."""
         planes = []
         for r in range(len(self.resolutions)):
             blocks = []
@@ -255,12 +257,7 @@ class GearField(Field):
                 plane = self.time_planes[gear - 1].planes[r]
                 blocks += [plane[:, :, :1], plane, plane[:, :, -1:]]
             planes.append(torch.cat(blocks, dim=2))
-        first_rows = [0] * self.num_gears
-        row = 0
-        for gear in gears:
-            first_rows[gear - 1] = row + 1
-            row += self.time_resolutions[gear - 1] + 2
-        return planes, torch.tensor(first_rows, dtype=torch.float32, device=planes[0].device)
+        return planes
 
     def get_density(self, ray_samples: RaySamples) -> Tuple[Float[Tensor, "*bs 1"], Float[Tensor, "*bs E"]]:
         """Density at the samples' positions and times, and what ``get_outputs`` needs of them: the density MLP's
