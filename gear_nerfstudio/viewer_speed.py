@@ -15,6 +15,7 @@ Then:
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 import weakref
@@ -52,22 +53,24 @@ def moving_rate(pixels_per_second: float) -> float:
 
 @torch.no_grad()
 def render_speed(model: "Model", viewer: "Viewer") -> float:
-    """Pixels per second of a full-image render of the first held-out camera, in evaluation mode."""
+    """Pixels per second of a full-image render of the first held-out camera, in evaluation mode, under the viewer's
+    lock: a browser that connected early waits with its first render instead of sharing the CPU with the timing."""
     cameras = viewer.pipeline.datamanager.eval_dataset.cameras
     pixels = float(cameras.width[0, 0] * cameras.height[0, 0])
     was_training = model.training
-    model.eval()
-    try:
-        for scale in (1 / 16, 1, 16):  # the first, untimed, pays for what a model does once
-            probe = cameras[0:1].to(model.device)
-            probe.rescale_output_resolution(math.sqrt(scale * PROBE_PIXELS / pixels))
-            start = time.perf_counter()
-            model.get_outputs_for_camera(probe)
-            seconds = time.perf_counter() - start
-            if scale >= 1 and seconds > 0.1:
-                break
-    finally:
-        model.train(was_training)
+    with viewer.train_lock or contextlib.nullcontext():
+        model.eval()
+        try:
+            for scale in (1 / 16, 1, 16):  # the first, untimed, pays for what a model does once
+                probe = cameras[0:1].to(model.device)
+                probe.rescale_output_resolution(math.sqrt(scale * PROBE_PIXELS / pixels))
+                start = time.perf_counter()
+                model.get_outputs_for_camera(probe)
+                seconds = time.perf_counter() - start
+                if scale >= 1 and seconds > 0.1:
+                    break
+        finally:
+            model.train(was_training)
     return float(probe.width[0, 0] * probe.height[0, 0]) / seconds
 
 
