@@ -2,8 +2,8 @@
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/near_layer_sightlines.py <run>/config.yml
 
-The layer's points are the held-out camera's pixels at its first frame whose depth is below ``NEAR_LAYER_DEPTH`` x
-the training rays' median depth (``near_layer``), lifted to 3D (up to ``POINTS``). Each is projected into every
+The layer's points are the held-out camera's pixels at its first frame in a near layer (``near_layer_pixels``: depth
+below a quarter of the training rays' median depth), lifted to 3D (up to ``POINTS``). Each is projected into every
 training camera at the same time, and that camera's rendered depth at the projection is compared with its distance
 to the point (scene units):
 
@@ -24,8 +24,9 @@ from pathlib import Path
 import torch
 from nerfstudio.utils.eval_utils import eval_setup
 
-from gear_nerfstudio.model.gear_model import NEAR_LAYER_DEPTH
+from gear_nerfstudio.model.gear_model import near_layer_pixels
 from gear_nerfstudio.model.image_render import render_image
+from gear_nerfstudio.tracking.projection import project
 
 POINTS = 400
 """Layer points sampled (fixed seed)."""
@@ -39,8 +40,8 @@ def main(config: Path) -> None:
     model = pipeline.model
     train, held = pipeline.datamanager.train_dataset.cameras, pipeline.datamanager.eval_dataset.cameras
     rays = held[0:1].generate_rays(camera_indices=0)
-    depth = render_image(model, rays, set())["depth"][..., 0]
-    layer = depth < NEAR_LAYER_DEPTH * model.training_depth
+    depth = render_image(model, rays, set())["depth"]
+    layer, depth = near_layer_pixels(depth, model.training_depth)[..., 0], depth[..., 0]
     if not layer.any():
         print("the held-out view's first frame has no near layer")
         return
@@ -56,19 +57,17 @@ def main(config: Path) -> None:
     counts = {"sees it": 0, "stops before": 0, "looks through": 0, "outside": 0}
     times = train.times[:, 0] if train.times is not None else torch.zeros(len(train))
     first = held.times[0, 0] if held.times is not None else times.min()
-    for i in ((times - first).abs() < 1e-6).nonzero()[:, 0].tolist():
-        rotation, centre = train.camera_to_worlds[i, :3, :3], train.camera_to_worlds[i, :3, 3]
-        local = (points - centre) @ rotation  # OpenGL camera axes: x right, y up, looking along -z
-        z = -local[:, 2]
-        x = float(train.cx[i]) + float(train.fx[i]) * local[:, 0] / z
-        y = float(train.cy[i]) - float(train.fy[i]) * local[:, 1] / z
-        inside = (z > 0) & (x >= 0) & (x < int(train.width[i])) & (y >= 0) & (y < int(train.height[i]))
+    same_time = ((times - first).abs() < 1e-6).nonzero()[:, 0]
+    pixels, in_front = project(train[same_time], points)  # (C, N, 2) = (x, y)
+    for i, uv, front in zip(same_time.tolist(), pixels, in_front):
+        x, y = uv[:, 0], uv[:, 1]
+        inside = front & (x >= 0) & (x < int(train.width[i])) & (y >= 0) & (y < int(train.height[i]))
         counts["outside"] += int((~inside).sum())
         if not inside.any():
             continue
         coords = torch.stack([y[inside], x[inside]], -1)[:, None, :]
         seen = render_image(model, train[i : i + 1].generate_rays(camera_indices=0, coords=coords), set())["depth"]
-        distance = torch.linalg.norm(points[inside] - centre, dim=-1)
+        distance = torch.linalg.norm(points[inside] - train.camera_to_worlds[i, :3, 3], dim=-1)
         beyond = seen.reshape(-1) - distance
         counts["sees it"] += int((beyond.abs() <= SURFACE).sum())
         counts["stops before"] += int((beyond < -SURFACE).sum())

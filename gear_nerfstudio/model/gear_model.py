@@ -19,7 +19,7 @@ import matplotlib
 import numpy as np
 import torch
 import tyro
-from jaxtyping import Float, Int
+from jaxtyping import Bool, Float, Int
 from torch import Tensor
 from torch.nn import Parameter
 
@@ -175,11 +175,16 @@ NEAR_LAYER_WARNING = 0.2
 """Share of an opaque evaluation view (accumulation above 0.9) in a near layer that training reports."""
 
 
+def near_layer_pixels(depth: Float[Tensor, "*bs 1"], training_depth: Tensor) -> Bool[Tensor, "*bs 1"]:
+    """Pixels of a render whose depth is below ``NEAR_LAYER_DEPTH`` x the training rays' median depth: on a rig whose
+    cameras see the scene from similar distances, a held-out view that ends that close sees a layer in front of
+    itself (none before any training batch has set the reference)."""
+    return depth < NEAR_LAYER_DEPTH * training_depth
+
+
 def near_layer(depth: Float[Tensor, "*bs 1"], training_depth: Tensor) -> float:
-    """Share of the pixels of a render whose depth is below ``NEAR_LAYER_DEPTH`` x the training rays' median depth:
-    on a rig whose cameras see the scene from similar distances, a held-out view that ends that close sees a layer
-    in front of itself (0 before any training batch has set the reference)."""
-    return float((depth < NEAR_LAYER_DEPTH * training_depth).float().mean())
+    """Share of a render's pixels in a near layer (``near_layer_pixels``)."""
+    return float(near_layer_pixels(depth, training_depth).float().mean())
 
 
 def lpips_weights_path() -> Path:
