@@ -19,13 +19,14 @@ the CPU, ``gear-nerf`` with ``--device cuda``) with the same data, iterations, b
 thing each changes:
 
 * ``gear-nerf``: the preset (N_gear = 4, gear updates, split sampling, L_SAM).
-* ``kplanes``: N_gear = 1 (plain K-Planes: one volume with one row per frame, n uniform samples), with L_SAM as
+* ``kplanes``: N_gear = 1 (plain K-Planes: one volume with one row per frame, the preset's base sampler), with L_SAM as
   Gear-NeRF: the main baseline.
 * ablations: ``no-split`` (gears and updates, but no extra samples: split base 1), ``no-updates`` (no gear
   update: every point stays in gear 1), ``gear-nerf-no-sam`` and ``kplanes-no-sam`` (no L_SAM; the upshift
   masks still come from the SAM decoder on the ground-truth frames' embeddings), and the paper's
   baselines ``uniform-128``, ``naive-medium`` and ``no-embedding``; for real captures ``no-appearance`` and
-  ``proposal`` (see ``method_overrides``).
+  ``uniform`` (the paper's n uniform base samples instead of the presets' proposal networks; see
+  ``method_overrides``).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...) for ``--main-methods``, one seed for the others.
 
@@ -99,7 +100,7 @@ METHODS: Dict[str, str] = {
     "naive-medium": "naive temporal, medium (T/2 rows), with L_SAM",
     "no-embedding": "Gear-NeRF w/o embedding (loss-threshold masks, no L_SAM)",
     "no-appearance": "Gear-NeRF w/o per-camera appearance codes",
-    "proposal": "Gear-NeRF with the proposal networks as base sampler",
+    "uniform": "Gear-NeRF with n uniform base samples (the paper's sampler)",
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -108,6 +109,7 @@ def method_overrides(method: str, frames: int) -> List[str]:
     """``ns-train`` overrides of a method on top of the base preset."""
     no_sam = ["--pipeline.datamanager.use-sam-features", "False", "--pipeline.gear-updates.sam-loss-weight", "0"]
     single = ["--pipeline.model.num-gears", "1"]
+    uniform = ["--pipeline.model.base-sampler", "uniform"]
     overrides = {
         "gear-nerf": [],
         "kplanes": single,
@@ -115,11 +117,11 @@ def method_overrides(method: str, frames: int) -> List[str]:
         "no-updates": ["--pipeline.gear-updates.enabled", "False"],
         "gear-nerf-no-sam": no_sam,
         "kplanes-no-sam": [*single, *no_sam],
-        "uniform-128": [*single, "--pipeline.model.num-samples", "128"],
+        "uniform-128": [*single, *uniform, "--pipeline.model.num-samples", "128"],
         "naive-medium": [*single, "--pipeline.model.time-resolutions", str(max(1, math.ceil(frames / 2)))],
         "no-embedding": [*no_sam, "--pipeline.gear-updates.mask-source", "loss_threshold"],
         "no-appearance": ["--pipeline.model.appearance-dim", "0"],
-        "proposal": ["--pipeline.model.base-sampler", "proposal"],
+        "uniform": uniform,
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")

@@ -1,12 +1,15 @@
 """Gear-NeRF method presets for ``ns-train``.
 
 * ``gear-nerf``: the paper's settings (M = 32, N_gear = 4, n = 64, Adam with lr 0.02).
-* ``gear-nerf-small``: CPU preset (small planes, n = 24, 1024 rays per batch, 5,000 iterations: 12-15 minutes of
-  CPU time single-threaded on 30 frames of 30 cameras at 304x168).
-* ``gear-nerf-baseline``: N_gear = 1, i.e. plain K-Planes with uniform sampling, sized as the small preset.
+* ``gear-nerf-small``: CPU preset (small planes, n = 24 base samples from small proposal networks, 1024 rays per
+  batch, 3,750 iterations: about the CPU time that 5,000 iterations of 24 uniform samples took, 12-15 minutes
+  single-threaded on 30 frames of 30 cameras at 304x168).
+* ``gear-nerf-baseline``: N_gear = 1, i.e. plain K-Planes, sized and sampled as the small preset.
 
-Every preset has a per-camera appearance code and renders evaluation views from the near plane
-(``GearNeRFModelConfig``). Long videos never load all frames: the datamanager keeps 40 training images in memory
+Every preset takes its base samples from proposal networks (K-Planes), has a per-camera appearance code and
+renders evaluation views from the near plane (``GearNeRFModelConfig``). On the real capture the proposal sampler
+beat 24 uniform samples at equal time and removed the layer that uniform samples left in front of the held-out
+camera at one seed in three (``benchmarks/results/real_capture_causes.md``). Long videos never load all frames: the datamanager keeps 40 training images in memory
 at a time, replaced every 100 iterations.
 """
 
@@ -86,9 +89,11 @@ def trainer_config(
     )
 
 
-SMALL_ITERATIONS = 5000
-"""Default iterations of the CPU presets: on the real capture (panoptic_basketball_video, 30 frames at 304x168) held-out
-PSNR still rose by about 0.5 dB from 2,000 to 6,000 iterations (benchmarks/results/real_capture_causes.md)."""
+SMALL_ITERATIONS = 3750
+"""Default iterations of the CPU presets: about the CPU time of 5,000 iterations with 24 uniform samples (the proposal
+networks' 96 density samples per ray make an iteration 1.4x longer; 3,750 of them took 1.03-1.07x the time). On the real capture
+(panoptic_basketball_video, 30 frames at 304x168) held-out PSNR still rose by about 0.5 dB from 2,000 to 6,000
+iterations of the uniform sampler (benchmarks/results/real_capture_causes.md)."""
 
 
 PAPER_ITERATIONS = 30000
@@ -99,8 +104,9 @@ paper's at 12,000, 24,000 and 36,000 of 80,000) on a 3x (Immersive) to 11x (N3D)
 
 
 def small_model(num_gears: int) -> GearNeRFModelConfig:
-    """Planes and MLPs sized for a CPU; the paper's L = 3, L' = 10 with epochs of 250 iterations (1/20 of the
-    preset's 5,000), i.e. updates at steps 750, 1,500 and 2,250 at any scene size."""
+    """Planes, MLPs and proposal networks sized for a CPU (64 and 32 proposal samples on planes of 64 and 128, then
+    24 base samples); the paper's L = 3, L' = 10 with epochs of 187 iterations (1/20 of the preset's 3,750), i.e.
+    updates at steps 561, 1,122 and 1,683 at any scene size."""
     return GearNeRFModelConfig(
         num_gears=num_gears,
         feature_dim=16,
@@ -110,6 +116,9 @@ def small_model(num_gears: int) -> GearNeRFModelConfig:
         hidden_dim_color=32,
         sam_head_dim=16,
         num_samples=24,
+        base_sampler="proposal",
+        num_proposal_samples=(64, 32),
+        proposal_resolutions=(64, 128),
         eval_num_rays_per_chunk=1024,
     )
 
@@ -117,7 +126,9 @@ def small_model(num_gears: int) -> GearNeRFModelConfig:
 gear_nerf = MethodSpecification(
     config=trainer_config(
         "gear-nerf",
-        GearNeRFModelConfig(num_gears=4, feature_dim=32, num_samples=64, eval_num_rays_per_chunk=4096),
+        GearNeRFModelConfig(
+            num_gears=4, feature_dim=32, num_samples=64, base_sampler="proposal", eval_num_rays_per_chunk=4096
+        ),
         num_rays_per_batch=4096,
         max_num_iterations=PAPER_ITERATIONS,
         warmup=512,
@@ -129,12 +140,13 @@ gear_nerf_small = MethodSpecification(
     config=trainer_config(
         "gear-nerf-small", small_model(num_gears=4), 1024, max_num_iterations=SMALL_ITERATIONS, warmup=100
     ),
-    description="Gear-NeRF CPU preview preset: small planes, 24 base samples per ray, 1024 rays per batch.",
+    description="Gear-NeRF CPU preview preset: small planes, 24 base samples per ray from proposal networks, 1024 rays "
+    "per batch.",
 )
 
 gear_nerf_baseline = MethodSpecification(
     config=trainer_config(
         "gear-nerf-baseline", small_model(num_gears=1), 1024, max_num_iterations=SMALL_ITERATIONS, warmup=100
     ),
-    description="Baseline for the benchmark: one gear (plain K-Planes, uniform sampling), small preset sizes.",
+    description="Baseline for the benchmark: one gear (plain K-Planes), small preset sizes and sampling.",
 )
