@@ -7,10 +7,10 @@
 * ``gear-nerf-baseline``: N_gear = 1, i.e. plain K-Planes, sized and sampled as the small preset.
 
 Every preset takes its base samples from proposal networks (K-Planes), has a per-camera appearance code and
-renders evaluation views from the near plane (``GearNeRFModelConfig``). On the real capture the proposal sampler
-beat 24 uniform samples at equal time and removed the layer that uniform samples left in front of the held-out
-camera at one seed in three (``benchmarks/results/real_capture_causes.md``). Long videos never load all frames: the datamanager keeps 40 training images in memory
-at a time, replaced every 100 iterations.
+renders evaluation views from the near plane (``GearNeRFModelConfig``). On the real captures the proposal sampler
+beat 24 uniform samples at about equal time and grew none of the layers that uniform samples left in front of the
+held-out camera (``benchmarks/results/real_capture_causes.md``). Long videos never load all frames: the
+datamanager keeps 40 training images in memory at a time, replaced every 100 iterations.
 """
 
 from __future__ import annotations
@@ -91,9 +91,9 @@ def trainer_config(
 
 SMALL_ITERATIONS = 3750
 """Default iterations of the CPU presets: about the CPU time of 5,000 iterations with 24 uniform samples (the proposal
-networks' 96 density samples per ray make an iteration 1.4x longer; 3,750 of them took 1.03-1.07x the time). On the real capture
-(panoptic_basketball_video, 30 frames at 304x168) held-out PSNR still rose by about 0.5 dB from 2,000 to 6,000
-iterations of the uniform sampler (benchmarks/results/real_capture_causes.md)."""
+networks' 96 density samples per ray make an iteration 1.4x longer; 3,750 of them took 1.03-1.07x the time). On the
+real capture (panoptic_basketball_video, 30 frames at 304x168) held-out PSNR still rose by about 0.5 dB from 2,000 to
+6,000 iterations of the uniform sampler (benchmarks/results/real_capture_causes.md)."""
 
 
 PAPER_ITERATIONS = 30000
