@@ -34,7 +34,10 @@ def run_ray(plan: ChunkPlan, address: Optional[str]) -> List[str]:
         raise ChunkError("--executor ray needs Ray: pip install 'gear-nerfstudio[ray]'") from err
     started_here = not ray.is_initialized()
     if started_here:
-        options = {"address": address} if address else {"include_dashboard": False}
+        # A Ray instance started here runs its workers at nice 0: Ray's default (15) lets any other process on the
+        # machine starve the chunks' training.
+        local = {"include_dashboard": False, "_system_config": {"worker_niceness": 0}}
+        options = {"address": address} if address else local
         ray.init(log_to_driver=True, **options)
     try:
         gpus = plan.num_devices if ray.cluster_resources().get("GPU", 0) >= 1 else 0
