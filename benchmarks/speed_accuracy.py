@@ -10,9 +10,10 @@ held-out camera cam00; moving pixels from the ground-truth motion) at two sizes,
 (``../shared/data/real/SOURCES.md``): ``panoptic`` (``panoptic_basketball``, Technicolor layout, held-out camera
 06, which has foreground masks of the moving people) and ``panoptic-video`` (``panoptic_basketball_video``, Neural
 3D Video layout at downscale 2, frames 0-29, held-out cam00). The committed results
-(``benchmarks/results/speed_accuracy.md``) are of the two real scenes, run as two invocations side by side
-(``--scenes panoptic-video`` and ``--scenes panoptic --iterations 3000``, both with ``--ablations`` and nothing
-after it, ``--checkpoints 4 --eval-frames 4``), then one ``--report-only`` over both.
+(``benchmarks/results/speed_accuracy.md``) are of the two real scenes, run as invocations side by side
+(``--scenes panoptic-video`` and ``--scenes panoptic --iterations 2250``, both with ``--ablations`` and nothing
+after it, ``--checkpoints 4 --eval-frames 4``; the results file lists the exact commands), then one
+``--report-only`` over both.
 
 Methods (``METHODS``), all ``ns-train <preset> <overrides>`` on the same base preset (``gear-nerf-small`` on
 the CPU, ``gear-nerf`` with ``--device cuda``) with the same data, iterations, batch and losses, except the one
