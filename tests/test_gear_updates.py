@@ -191,6 +191,7 @@ def test_a_resumed_run_goes_on_with_the_updates_where_they_were(loop_run):
     # From step 100 (after the update at 60) to step 399: the updates at 120 and 180 are the 2nd and 3rd.
     middle = copy.deepcopy(loop_config(root, "middle", LOOP_ITERATIONS - 101, load_dir=checkpoints))
     middle.load_step = 100
+    middle.pipeline.datamanager.train_num_rays_per_batch = 256  # what is checked is the schedule, not the fit
     trainer, updater = train(middle)
     assert updater.planned == [120, 180]
     assert int(updater.state.num_updates) == 3 and bool(updater.state.finished)
