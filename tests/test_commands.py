@@ -78,13 +78,14 @@ def test_eval_with_missing_data_stops_in_one_line(trained):
 
 @pytest.fixture(scope="module")
 def moving_run(tmp_path_factory):
-    """gear-nerf-small trained for 200 iterations (gear updates at steps 30, 60, 90) on a 32x24, 4-frame N3D scene:
-    enough for its renders to show the spheres moving. (root, scene, config.yml)"""
+    """gear-nerf-small trained for 200 iterations of 256 rays (gear updates at steps 30, 60, 90) on a 32x24, 4-frame
+    N3D scene: enough for its renders to show the spheres moving. (root, scene, config.yml)"""
     root = tmp_path_factory.mktemp("moving")
     scene = write_synthetic_scene(root / "scene", SyntheticSpec(dataset="n3d", width=32, height=24, frames=4, cameras=5))
     ns(
         "ns-train", "gear-nerf-small", "--output-dir", str(root / "runs"), "--timestamp", "run",
         "--max-num-iterations", "200", "--pipeline.gear-updates.iterations-per-epoch", "10",
+        "--pipeline.datamanager.train-num-rays-per-batch", "256",
         "--machine.device-type", "cpu", "--vis", "tensorboard", "--steps-per-eval-all-images", "100000",
         "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache"), cwd=root,
     )
@@ -95,25 +96,31 @@ def rendered_frames(folder: Path) -> np.ndarray:
     return np.stack([np.asarray(Image.open(p), dtype=np.float32) / 255 for p in sorted(folder.glob("*.jpg"))])
 
 
-def test_time_sweep_path_renders_the_video_from_a_fixed_view(moving_run):
-    """ns-gear-path time-sweep writes the held-out camera at each frame's time; ns-render camera-path renders it, and
-    the frames change where the spheres move (ground truth) and hardly elsewhere."""
-    root, scene, config = moving_run
+@pytest.fixture(scope="module")
+def time_sweep(moving_run):
+    """ns-gear-path time-sweep of the held-out camera, rendered by ns-render camera-path: (path, rendered frames)."""
+    root, _, config = moving_run
     path = root / "sweep.json"
     result = ns("ns-gear-path", "time-sweep", "--load-config", str(config), "--output-path", str(path), cwd=root)
     assert "Warning" not in result.stderr, result.stderr  # the plugin loads first: nerfstudio's warnings filtered
+    ns(
+        "ns-render", "camera-path", "--load-config", str(config), "--camera-path-filename", str(path),
+        "--output-path", str(root / "sweep"), "--output-format", "images", cwd=root,
+    )
+    return path, rendered_frames(root / "sweep")
+
+
+def test_time_sweep_path_renders_the_video_from_a_fixed_view(moving_run, time_sweep):
+    """ns-gear-path time-sweep writes the held-out camera at each frame's time; ns-render camera-path renders it, and
+    the frames change where the spheres move (ground truth) and hardly elsewhere."""
+    root, scene, _ = moving_run
+    path, images = time_sweep
     frames = json.loads(path.read_text())["camera_path"]
     held_out = Neural3DVideoDataParserConfig(data=scene, cache_dir=root / "cache").setup()
     pose = held_out.get_dataparser_outputs("test").cameras.camera_to_worlds[0].numpy()
     assert [frame["render_time"] for frame in frames] == pytest.approx([0, 1 / 3, 2 / 3, 1])
     for frame in frames:
         np.testing.assert_allclose(np.reshape(frame["camera_to_world"], (4, 4))[:3], pose, atol=1e-6)
-
-    ns(
-        "ns-render", "camera-path", "--load-config", str(config), "--camera-path-filename", str(path),
-        "--output-path", str(root / "sweep"), "--output-format", "images", cwd=root,
-    )
-    images = rendered_frames(root / "sweep")
     assert images.shape == (4, 24, 32, 3)
     motion = np.load(scene / "ground_truth" / "cam00.npz")["motion"]
     moving = (motion[0] > 0) | (motion[-1] > 0)
@@ -121,22 +128,16 @@ def test_time_sweep_path_renders_the_video_from_a_fixed_view(moving_run):
     assert change[moving].mean() > 3 * change[~moving].mean(), (change[moving].mean(), change[~moving].mean())
 
 
-def test_spiral_starts_upright_at_its_source_camera(moving_run):
+def test_spiral_starts_upright_at_its_source_camera(moving_run, time_sweep):
     """ns-render spiral's first frame (time 0, a small step from the held-out camera) looks like the held-out camera's
-    render at time 0, not like it turned upside down (nerfstudio's spiral assumes the camera looks along -y)."""
+    render at time 0 (the time sweep's first frame), not like it turned upside down (nerfstudio's spiral assumes the
+    camera looks along -y)."""
     root, _, config = moving_run
-    path = root / "start.json"
-    ns("ns-gear-path", "time-sweep", "--load-config", str(config), "--output-path", str(path), "--end-time", "0",
-       "--frames", "2", cwd=root)
-    ns(
-        "ns-render", "camera-path", "--load-config", str(config), "--camera-path-filename", str(path),
-        "--output-path", str(root / "start"), "--output-format", "images", cwd=root,
-    )
     ns(
         "ns-render", "spiral", "--load-config", str(config), "--output-path", str(root / "spiral"),
         "--output-format", "images", "--seconds", "1", "--frame-rate", "4", "--radius", "0.01", cwd=root,
     )
-    source, spiral = rendered_frames(root / "start")[0], rendered_frames(root / "spiral")[0]
+    source, spiral = time_sweep[1][0], rendered_frames(root / "spiral")[0]
     upright = np.abs(spiral - source).mean()
     assert upright < 0.5 * np.abs(spiral - source[::-1, ::-1]).mean(), upright
 

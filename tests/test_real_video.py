@@ -5,7 +5,6 @@ trained briefly with ns-train, gear updates and their guard included."""
 from __future__ import annotations
 
 import json
-import math
 import re
 
 import pytest
@@ -17,10 +16,11 @@ VIDEO = SHARED_REAL / "panoptic_basketball_video"
 
 
 @pytest.mark.skipif(not CAPTURE.is_dir(), reason="shared real data not present")
-def test_ns_train_runs_gear_updates_on_real_video_and_ns_eval_scores_it(tmp_path):
+def test_ns_train_runs_gear_updates_on_real_video(tmp_path):
     """40 iterations on 6 frames of 15 cameras with epochs of 2 iterations: updates at steps 6, 12 and 18. The
     motion gate passes the people (real sensor noise does not stop it: the upshift masks are not empty). The guard
-    reviews each update when the next is due and logs its verdict; after an update it undoes, none runs."""
+    reviews each update when the next is due and logs its verdict; after an update it undoes, none runs. (ns-eval on
+    real video: the next test.)"""
     result = ns(
         "ns-train", "gear-nerf-small", "--output-dir", str(tmp_path / "runs"), "--experiment-name", "real",
         "--timestamp", "run", "--max-num-iterations", "40", "--machine.device-type", "cpu", "--vis", "tensorboard",
@@ -37,11 +37,6 @@ def test_ns_train_runs_gear_updates_on_real_video_and_ns_eval_scores_it(tmp_path
     assert [(int(u), int(s)) for u, s, _ in reviews] == [(k, 6 * k + 6) for k in range(1, len(areas) + 1)], log[-3000:]
     undone = [verdict.endswith("undone") for _, _, verdict in reviews]
     assert len(areas) == (undone.index(True) + 1 if any(undone) else 3) and max(areas) > 0, log[-3000:]
-    metrics = tmp_path / "metrics.json"
-    config = tmp_path / "runs" / "real" / "gear-nerf-small" / "run" / "config.yml"
-    ns("ns-eval", "--load-config", str(config), "--output-path", str(metrics), cwd=tmp_path)
-    results = json.loads(metrics.read_text())["results"]
-    assert math.isfinite(results["psnr"]) and 0 <= results["accumulation"] <= 1 and 0 <= results["near_layer"] <= 1
 
 
 @pytest.mark.skipif(not VIDEO.is_dir(), reason="shared real data not present")
@@ -62,4 +57,4 @@ def test_the_held_out_camera_on_the_dome_wall_sees_the_scene_not_a_layer_in_fron
     config = tmp_path / "runs" / "dome" / "gear-nerf-baseline" / "run" / "config.yml"
     ns("ns-eval", "--load-config", str(config), "--output-path", str(metrics), cwd=tmp_path)
     results = json.loads(metrics.read_text())["results"]
-    assert results["near_layer"] < 0.05 and results["psnr"] > 18, results
+    assert results["near_layer"] < 0.05 and results["psnr"] > 18 and 0 < results["accumulation"] <= 1, results
