@@ -25,9 +25,9 @@ thing each changes:
 * ablations: ``no-split`` (gears and updates, but no extra samples: split base 1), ``no-updates`` (no gear
   update: every point stays in gear 1), ``gear-nerf-no-sam`` and ``kplanes-no-sam`` (no L_SAM; the upshift
   masks still come from the SAM decoder on the ground-truth frames' embeddings), and the paper's
-  baselines ``uniform-128``, ``naive-medium`` and ``no-embedding``; for real captures ``no-appearance`` and
-  ``uniform`` (the paper's n uniform base samples instead of the presets' proposal networks; see
-  ``method_overrides``).
+  baselines ``uniform-128``, ``naive-medium`` and ``no-embedding``; for real captures ``no-appearance``,
+  ``uniform`` (the paper's n uniform base samples instead of the presets' proposal networks) and
+  ``random-background`` (nerfstudio's random background colour in training; see ``method_overrides``).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...) for ``--main-methods``, one seed for the others.
 
@@ -102,6 +102,7 @@ METHODS: Dict[str, str] = {
     "no-embedding": "Gear-NeRF w/o embedding (loss-threshold masks, no L_SAM)",
     "no-appearance": "Gear-NeRF w/o per-camera appearance codes",
     "uniform": "Gear-NeRF with n uniform base samples (the paper's sampler)",
+    "random-background": "Gear-NeRF trained on a random background colour (transparency costs loss)",
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -123,6 +124,7 @@ def method_overrides(method: str, frames: int) -> List[str]:
         "no-embedding": [*no_sam, "--pipeline.gear-updates.mask-source", "loss_threshold"],
         "no-appearance": ["--pipeline.model.appearance-dim", "0"],
         "uniform": uniform,
+        "random-background": ["--pipeline.model.background-color", "random"],
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
