@@ -23,20 +23,6 @@ SPECS = {
 }
 
 
-TRAINING_MODULES = (
-    "test_chunks", "test_real_video", "test_gear_updates", "test_viewer_browser", "test_chunks_ray", "test_commands",
-    "test_tracking", "test_sam_onnx",
-)
-"""The modules that train models, longest first (about 350 to 75 s each on an idle machine). They run before the
-others: ``scripts/test.sh`` hands whole modules to its processes in collection order, so the short modules fill
-the ends."""
-
-
-def pytest_collection_modifyitems(items):
-    first = {name: rank for rank, name in enumerate(TRAINING_MODULES)}
-    items.sort(key=lambda item: first.get(item.module.__name__.rpartition(".")[2], len(first)))
-
-
 @pytest.fixture(scope="session", autouse=True)
 def private_cache(tmp_path_factory):
     """Frame and SAM caches of every test (and the commands they start) go to a temporary folder."""
