@@ -48,8 +48,10 @@ What is measured, and how:
 * Equal iterations: the last checkpoint. Equal training time (the headline): per scene, a time budget (the
   shortest mean total training time of the main methods, or ``--time-budget``); each run is scored at its
   last checkpoint within the budget. On the CPU the headline clock is the CPU time of the training process
-  (run it single-threaded, ``OMP_NUM_THREADS=1``: then it equals the wall-clock time of an idle machine and
-  does not depend on what else the machine runs); the wall-clock table follows. On CUDA the headline is the
+  (run it single-threaded, ``OMP_NUM_THREADS=1``: then it equals the wall-clock time of an idle machine; it
+  depends much less on what else the machine runs than the wall-clock time does, but it still rose by 20-30 %
+  per iteration when every core was busy, so the runs compared should share the machine alike;
+  ``real_capture_causes.md``); the wall-clock table follows. On CUDA the headline is the
   wall-clock time. Means and sample standard deviations are over seeds.
 
 Writes ``<output>/speed_accuracy.md`` (tables, targets, command, machine, date), ``<output>/speed_accuracy.png``
