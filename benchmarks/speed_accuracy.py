@@ -29,7 +29,8 @@ thing each changes:
   ``uniform`` (the paper's n uniform base samples instead of the presets' proposal networks) and
   ``random-background`` (nerfstudio's random background colour in training; see ``method_overrides``).
 
-Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...) for ``--main-methods``, one seed for the others.
+Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
+the others.
 
 What is measured, and how:
 
@@ -237,7 +238,9 @@ class SpeedAccuracyBenchmark:
     ablation_scenes: Tuple[str, ...] = ("mixed", "panoptic")
     """Scenes on which the ablations run."""
     seeds: int = 3
-    """Seeds of the main methods (``--machine.seed`` 42, 43, ...)."""
+    """Seeds of the main methods (``--machine.seed`` first_seed, first_seed + 1, ...)."""
+    first_seed: int = 42
+    """The first seed (the ablations' only one): another value adds seeds to earlier runs in another folder."""
     iterations: Optional[int] = None
     """Training iterations of every run, with the gear-update schedule scaled to them as the presets scale theirs
     (``schedule_options``); default: the base preset's own, with its own schedule."""
@@ -274,7 +277,8 @@ class SpeedAccuracyBenchmark:
                 scene.write(self.output)
             ablations = self.ablations if name in self.ablation_scenes else ()
             for method in (*self.main_methods, *ablations):
-                for seed in range(42, 42 + (self.seeds if method in self.main_methods else 1)):
+                seeds = self.seeds if method in self.main_methods else 1
+                for seed in range(self.first_seed, self.first_seed + seeds):
                     records.append(self.run(scene, method, seed))
                     (self.output / "records.json").write_text(json.dumps(records, indent=1))
         finished = datetime.datetime.now(datetime.timezone.utc)
