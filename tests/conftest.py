@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import select
+import signal
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
+from typing import Dict, List, Optional
 
 import pytest
 
@@ -53,12 +58,54 @@ IMPORT_WARNING = re.compile(r"Warning: |warnings\.warn\(|^\s+@custom_(fwd|bwd)|^
 plugin code runs (``gear_nerfstudio.dependency_warnings``)."""
 
 
+class CommandServer:
+    """This test process's ``tests/command_server.py``, started at its first command."""
+
+    process: Optional[subprocess.Popen] = None
+    pending = b""
+
+    @classmethod
+    def run(cls, argv: List[str], cwd: Path, env: Dict[str, str], timeout: float) -> subprocess.CompletedProcess:
+        if cls.process is None or cls.process.poll() is not None:
+            cls.process, cls.pending = subprocess.Popen(
+                [sys.executable, "-m", "tests.command_server"], cwd=REPO, env=env,
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+            ), b""  # fmt: skip
+        assert cls.process.stdin is not None
+        with tempfile.TemporaryDirectory() as folder:
+            out, err = Path(folder) / "stdout", Path(folder) / "stderr"
+            request = {"argv": argv, "cwd": str(cwd), "env": env, "stdout": str(out), "stderr": str(err)}
+            cls.process.stdin.write(json.dumps(request).encode() + b"\n")
+            cls.process.stdin.flush()
+            pid = cls.reply(timeout=300)["pid"]  # the first request waits for the server's imports
+            try:
+                returncode = cls.reply(timeout)["returncode"]
+            except TimeoutError:
+                os.killpg(pid, signal.SIGKILL)
+                cls.process.kill()  # its answer for the killed command would be read as the next one's
+                raise
+            return subprocess.CompletedProcess(argv, returncode, out.read_text(), err.read_text())
+
+    @classmethod
+    def reply(cls, timeout: float) -> dict:
+        assert cls.process is not None and cls.process.stdout is not None
+        fd = cls.process.stdout.fileno()
+        while b"\n" not in cls.pending:
+            if not select.select([fd], [], [], timeout)[0]:
+                raise TimeoutError(f"no answer from tests/command_server.py in {timeout} s")
+            chunk = os.read(fd, 4096)
+            assert chunk, "tests/command_server.py ended"
+            cls.pending += chunk
+        line, cls.pending = cls.pending.split(b"\n", 1)
+        return json.loads(line)
+
+
 def command(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    """Run a command of the virtual environment, with its bin folder (ffmpeg for videos) on PATH."""
+    """Run a command of the virtual environment, with its bin folder (ffmpeg for videos) on PATH: the console
+    script's entry point in a process of its own, forked from ``tests/command_server.py`` (the same code as the
+    installed script, without its 22 s of imports; ``test_plugin.py`` runs the installed scripts themselves)."""
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
-    return subprocess.run(
-        [str(BIN / args[0]), *args[1:]], capture_output=True, text=True, cwd=cwd, timeout=900, env=env
-    )
+    return CommandServer.run([str(BIN / args[0]), *args[1:]], cwd, env, timeout=900)
 
 
 def ns(*args: str, cwd: Path) -> subprocess.CompletedProcess:
