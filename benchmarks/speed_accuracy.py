@@ -27,7 +27,8 @@ thing each changes:
   masks still come from the SAM decoder on the ground-truth frames' embeddings), and the paper's
   baselines ``uniform-128``, ``naive-medium`` and ``no-embedding``; for real captures ``no-appearance``,
   ``uniform`` (the paper's n uniform base samples instead of the presets' proposal networks) and
-  ``random-background`` (nerfstudio's random background colour in training; see ``method_overrides``).
+  ``random-background`` (nerfstudio's random background colour in training; see ``method_overrides``); for the
+  budget ``lr-0.01`` (every parameter group) and ``rays-2048`` (with ``--iterations`` halved: equal rays).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
 the others.
@@ -81,6 +82,7 @@ from typing import Any, Callable, Dict, List, Literal, Optional, Tuple
 import numpy as np
 import tyro
 
+from compare_views import contact_sheet
 from environment import command_environment
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 
@@ -106,6 +108,8 @@ METHODS: Dict[str, str] = {
     "no-appearance": "Gear-NeRF w/o per-camera appearance codes",
     "uniform": "Gear-NeRF with n uniform base samples (the paper's sampler)",
     "random-background": "Gear-NeRF trained on a random background colour (transparency costs loss)",
+    "lr-0.01": "Gear-NeRF at learning rate 0.01 (K-Planes') instead of 0.02",
+    "rays-2048": "Gear-NeRF on 2,048 rays per batch instead of 1,024",
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -128,6 +132,9 @@ def method_overrides(method: str, frames: int) -> List[str]:
         "no-appearance": ["--pipeline.model.appearance-dim", "0"],
         "uniform": uniform,
         "random-background": ["--pipeline.model.background-color", "random"],
+        "lr-0.01": [arg for group in ("fields", "proposal-networks", "gear-field")
+                    for arg in (f"--optimizers.{group}.optimizer.lr", "0.01")],  # fmt: skip
+        "rays-2048": ["--pipeline.datamanager.train-num-rays-per-batch", "2048"],
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
@@ -617,7 +624,7 @@ class Report:
     def pictures(self, folder: Path) -> List[Path]:
         """Per scene, the held-out view at two times (rows): ground truth, Gear-NeRF, plain K-Planes and Gear-NeRF's
         gear map, from the first seed's last checkpoint; one PNG per scene."""
-        from PIL import Image, ImageDraw
+        from PIL import Image
 
         written = []
         for scene in self.scenes:
@@ -629,14 +636,7 @@ class Report:
             columns = [("ground truth", "gear-nerf", "truth"), ("Gear-NeRF", "gear-nerf", "render"),
                        ("plain K-Planes (one gear)", "kplanes", "render"), ("Gear-NeRF gear map", "gear-nerf", "gear")]
             tiles = [[Image.open(folders[m] / f"{stem}_{kind}.png") for _, m, kind in columns] for stem in stems]
-            width, height = tiles[0][0].size
-            sheet = Image.new("RGB", (width * len(columns), 14 + height * len(tiles)), "white")
-            draw = ImageDraw.Draw(sheet)
-            for c, (label, _, _) in enumerate(columns):
-                draw.text((c * width + 4, 1), label, fill="black")
-            for r, row in enumerate(tiles):
-                for c, tile in enumerate(row):
-                    sheet.paste(tile, (c * width, 14 + r * height))
+            sheet = contact_sheet([label for label, _, _ in columns], tiles)
             path = folder / f"speed_accuracy_{scene}.png"
             sheet.save(path)
             written.append(path)

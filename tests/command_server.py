@@ -1,12 +1,13 @@
 """Runs the project's and nerfstudio's console commands for the tests, each in a process of its own, without paying
 their imports each time.
 
-A nerfstudio command spends about 22 s of CPU before it reads its arguments (`ns-eval --help`, idle): importing torch, and nerfstudio's
-``method_configs``, whose ``get_external_methods`` calls ``inspect.stack()`` 26 times, each walking the thousands of
-loaded modules. This server pays that once: it imports them, then forks one child per request. The child becomes
-the command: its own session, folder, environment, ``sys.argv`` and standard streams, then the console script's
-entry point (``importlib.metadata``'s ``console_scripts``, which is what the installed ``ns-*`` script calls), and a
-normal interpreter exit (atexit handlers, non-daemon threads) with the command's exit status.
+A nerfstudio command spends about 22 s of CPU before it reads its arguments (`ns-eval --help`, idle): importing
+torch, and nerfstudio's ``method_configs``, whose ``get_external_methods`` calls ``inspect.stack()`` 26 times, each
+walking the thousands of loaded modules. This server pays that once: it imports them, then forks one child per
+request. The child becomes the command: its own session, folder, environment, ``sys.argv`` and standard streams,
+then the console script's entry point (``importlib.metadata``'s ``console_scripts``, which is what the installed
+``ns-*`` script calls), and a normal interpreter exit (atexit handlers, non-daemon threads) with the command's exit
+status.
 
 Protocol, one JSON line each way per request on stdin/stdout: ``{"argv", "cwd", "env", "stdout", "stderr"}`` in;
 ``{"pid"}`` once the child runs, then ``{"returncode"}`` when it ends.
