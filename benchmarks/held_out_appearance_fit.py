@@ -43,18 +43,14 @@ def main(config: Path, steps: int, picture: Optional[Path]) -> None:
     width = truths[0].shape[1]
     right = slice(width // 2, width)
 
-    renders: List[List[torch.Tensor]] = []
+    def render() -> List[torch.Tensor]:
+        with torch.no_grad():
+            return [model.get_outputs_for_camera(camera)["rgb"] for camera in cameras]
 
-    def right_half_psnr() -> float:
-        scores, rgbs = [], []
-        for camera, truth in zip(cameras, truths):
-            with torch.no_grad():
-                rgbs.append(model.get_outputs_for_camera(camera)["rgb"])
-            scores.append(float(psnr(rgbs[-1][:, right], truth[:, right])))
-        renders.append(rgbs)
-        return float(np.mean(scores))
+    def right_half_psnr(renders: List[torch.Tensor]) -> float:
+        return float(np.mean([float(psnr(rgb[:, right], truth[:, right])) for rgb, truth in zip(renders, truths)]))
 
-    mean_score = right_half_psnr()
+    with_mean = render()
     held = int(cameras[0].metadata[RIG_CAMERA].reshape(-1)[0])
     with torch.no_grad():
         appearance.codes.weight[held] = appearance.mean_code()
@@ -65,23 +61,24 @@ def main(config: Path, steps: int, picture: Optional[Path]) -> None:
     for parameter in model.parameters():
         parameter.requires_grad_(parameter is code)
     optimizer = torch.optim.Adam([code], lr=0.01)
+    others = torch.ones(len(code), dtype=torch.bool)
+    others[held] = False
     for _ in range(steps):
         frame = int(torch.randint(len(bundles), ()))
         rays = torch.randint(len(bundles[frame]), (1024,))
         loss = torch.nn.functional.mse_loss(model(bundles[frame][rays])["rgb"], colours[frame][rays])
         optimizer.zero_grad()
         loss.backward()
-        keep = torch.ones(len(code), dtype=torch.bool)
-        keep[held] = False
-        code.grad[keep] = 0.0  # only the held-out camera's code moves
+        code.grad[others] = 0.0  # only the held-out camera's code moves
         optimizer.step()
-    fitted_score = right_half_psnr()
+    fitted = render()
     if picture is not None:
-        rows = [[as_image(truths[k]), as_image(renders[0][k]), as_image(renders[1][k])] for k in (0, 2)]
+        rows = [[as_image(truths[k]), as_image(with_mean[k]), as_image(fitted[k])] for k in (0, 2)]
         contact_sheet(["ground truth", "mean code", "code fitted on the left half"], rows).save(picture)
-    print(f"{config}: right halves of {len(frames)} held-out frames, mean code {mean_score:.2f} dB, "
-          f"code fitted on the left halves {fitted_score:.2f} dB")
+    print(f"{config}: right halves of {len(frames)} held-out frames, mean code {right_half_psnr(with_mean):.2f} dB, "
+          f"code fitted on the left halves {right_half_psnr(fitted):.2f} dB")
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 200, Path(sys.argv[3]) if len(sys.argv) > 3 else None)
+    steps = int(sys.argv[2]) if len(sys.argv) > 2 else 200
+    main(Path(sys.argv[1]), steps, Path(sys.argv[3]) if len(sys.argv) > 3 else None)

@@ -9,14 +9,17 @@ then the console script's entry point (``importlib.metadata``'s ``console_script
 ``ns-*`` script calls), and a normal interpreter exit (atexit handlers, non-daemon threads) with the command's exit
 status.
 
-Protocol, one JSON line each way per request on stdin/stdout: ``{"argv", "cwd", "env", "stdout", "stderr"}`` in;
-``{"pid"}`` once the child runs, then ``{"returncode"}`` when it ends.
+Protocol, one JSON line each way per request on stdin/stdout: ``{"argv", "cwd", "env", "stdout", "stderr",
+"timeout"}`` in; ``{"returncode", "timed_out"}`` out, once the command has ended or, after ``timeout`` seconds, its
+process group has been killed.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import select
+import signal
 import sys
 from importlib.metadata import entry_points
 from typing import Callable, Dict
@@ -33,6 +36,7 @@ def run_child(request: dict, entrypoint: Callable[[], object]) -> None:
     os.environ.update(request["env"])
     null = os.open(os.devnull, os.O_RDONLY)
     os.dup2(null, 0)
+    os.close(null)
     for fd, path in ((1, request["stdout"]), (2, request["stderr"])):
         out = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         os.dup2(out, fd)
@@ -54,9 +58,13 @@ def serve() -> None:
         pid = os.fork()
         if pid == 0:
             run_child(request, loaded[name])
-        print(json.dumps({"pid": pid}), flush=True)
+        ended = os.pidfd_open(pid)  # readable once the child has ended
+        timed_out = not select.select([ended], [], [], request["timeout"])[0]
+        os.close(ended)
+        if timed_out:
+            os.killpg(pid, signal.SIGKILL)
         status = os.waitpid(pid, 0)[1]
-        print(json.dumps({"returncode": os.waitstatus_to_exitcode(status)}), flush=True)
+        print(json.dumps({"returncode": os.waitstatus_to_exitcode(status), "timed_out": timed_out}), flush=True)
 
 
 if __name__ == "__main__":

@@ -5,8 +5,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import select
-import signal
 import subprocess
 import sys
 import tempfile
@@ -62,42 +60,26 @@ class CommandServer:
     """This test process's ``tests/command_server.py``, started at its first command."""
 
     process: Optional[subprocess.Popen] = None
-    pending = b""
 
     @classmethod
     def run(cls, argv: List[str], cwd: Path, env: Dict[str, str], timeout: float) -> subprocess.CompletedProcess:
         if cls.process is None or cls.process.poll() is not None:
-            cls.process, cls.pending = subprocess.Popen(
-                [sys.executable, "-m", "tests.command_server"], cwd=REPO, env=env,
+            cls.process = subprocess.Popen(
+                [sys.executable, "-m", "tests.command_server"], cwd=REPO, env=env, text=True,
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-            ), b""  # fmt: skip
-        assert cls.process.stdin is not None
+            )  # fmt: skip
+        assert cls.process.stdin is not None and cls.process.stdout is not None
         with tempfile.TemporaryDirectory() as folder:
             out, err = Path(folder) / "stdout", Path(folder) / "stderr"
-            request = {"argv": argv, "cwd": str(cwd), "env": env, "stdout": str(out), "stderr": str(err)}
-            cls.process.stdin.write(json.dumps(request).encode() + b"\n")
-            cls.process.stdin.flush()
-            pid = cls.reply(timeout=300)["pid"]  # the first request waits for the server's imports
-            try:
-                returncode = cls.reply(timeout)["returncode"]
-            except TimeoutError:
-                os.killpg(pid, signal.SIGKILL)
-                cls.process.kill()  # its answer for the killed command would be read as the next one's
-                raise
-            return subprocess.CompletedProcess(argv, returncode, out.read_text(), err.read_text())
-
-    @classmethod
-    def reply(cls, timeout: float) -> dict:
-        assert cls.process is not None and cls.process.stdout is not None
-        fd = cls.process.stdout.fileno()
-        while b"\n" not in cls.pending:
-            if not select.select([fd], [], [], timeout)[0]:
-                raise TimeoutError(f"no answer from tests/command_server.py in {timeout} s")
-            chunk = os.read(fd, 4096)
-            assert chunk, "tests/command_server.py ended"
-            cls.pending += chunk
-        line, cls.pending = cls.pending.split(b"\n", 1)
-        return json.loads(line)
+            request = {"argv": argv, "cwd": str(cwd), "env": env, "stdout": str(out), "stderr": str(err),
+                       "timeout": timeout}  # fmt: skip
+            print(json.dumps(request), file=cls.process.stdin, flush=True)
+            line = cls.process.stdout.readline()
+            assert line, "tests/command_server.py ended"
+            reply = json.loads(line)
+            if reply["timed_out"]:
+                raise TimeoutError(f"{' '.join(argv)} took more than {timeout} s")
+            return subprocess.CompletedProcess(argv, reply["returncode"], out.read_text(), err.read_text())
 
 
 def command(*args: str, cwd: Path) -> subprocess.CompletedProcess:
