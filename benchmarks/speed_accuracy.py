@@ -6,10 +6,11 @@ One command trains and evaluates every (scene, method, seed), one run after the 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/speed_accuracy.py --output outputs/speed_accuracy --results benchmarks/results
 
 Scenes (``SCENES``): synthetic scenes with ground truth (``gear_nerfstudio.tools.synthetic``, Neural 3D Video format,
-held-out camera cam00; moving pixels from the ground-truth motion) at two sizes, and two real captures
+held-out camera cam00; moving pixels from the ground-truth motion) at two sizes, and real captures
 (``../shared/data/real/SOURCES.md``): ``panoptic`` (``panoptic_basketball``, Technicolor layout, held-out camera
 06, which has foreground masks of the moving people) and ``panoptic-video`` (``panoptic_basketball_video``, Neural
-3D Video layout at downscale 2, frames 0-29, held-out cam00). The committed results
+3D Video layout at downscale 2, frames 0-29, held-out cam00), and one forward-facing time step, ``flame-steak``
+(``n3d_flame_steak_frame0``, downscale 2, held-out cam00). The committed results
 (``benchmarks/results/speed_accuracy.md``) are of the two real scenes, run as invocations side by side
 (``--scenes panoptic-video`` and ``--scenes panoptic --iterations 2250``, both with ``--ablations`` and nothing
 after it, ``--checkpoints 4 --eval-frames 4``; the results file lists the exact commands), then one
@@ -28,7 +29,8 @@ thing each changes:
   baselines ``uniform-128``, ``naive-medium`` and ``no-embedding``; for real captures ``no-appearance``,
   ``uniform`` (the paper's n uniform base samples instead of the presets' proposal networks) and
   ``random-background`` (nerfstudio's random background colour in training; see ``method_overrides``); for the
-  budget ``lr-0.01`` (every parameter group) and ``rays-2048`` (with ``--iterations`` halved: equal rays).
+  budget ``lr-0.01`` (every parameter group) and ``rays-2048`` (with ``--iterations`` halved: equal rays), ``initial-density``; for
+  forward-facing rigs ``contraction`` (nerfacto's scene contraction beyond the box and its far plane).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
 the others.
@@ -110,6 +112,8 @@ METHODS: Dict[str, str] = {
     "random-background": "Gear-NeRF trained on a random background colour (transparency costs loss)",
     "lr-0.01": "Gear-NeRF at learning rate 0.01 (K-Planes') instead of 0.02",
     "rays-2048": "Gear-NeRF on 2,048 rays per batch instead of 1,024",
+    "initial-density": "Gear-NeRF starting from density 2 per scene unit instead of about 0.37",
+    "contraction": "Gear-NeRF with space beyond the scene box contracted (far plane 1,000, as nerfacto)",
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -135,6 +139,8 @@ def method_overrides(method: str, frames: int) -> List[str]:
         "lr-0.01": [arg for group in ("fields", "proposal-networks", "gear-field")
                     for arg in (f"--optimizers.{group}.optimizer.lr", "0.01")],  # fmt: skip
         "rays-2048": ["--pipeline.datamanager.train-num-rays-per-batch", "2048"],
+        "initial-density": ["--pipeline.model.initial-density", "2"],
+        "contraction": ["--pipeline.model.unbounded", "True", "--pipeline.model.far-plane", "1000"],
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
@@ -221,6 +227,11 @@ SCENES: Dict[str, Scene] = {
         "panoptic-video", "real: CMU Panoptic basketball in the Neural 3D Video layout, 304x168 (downscale 2), 31 cameras "
         "(30 trained), frames 0-29", 30, "cam00", data=REAL / "panoptic_basketball_video", parser="neural-3d-video-data",
         parser_options=("--downscale-factor", "2", "--frame-count", "30"),
+    ),
+    "flame-steak": Scene(
+        "flame-steak", "real: Neural 3D Video flame_steak, frame 0 only, 336x252 (downscale 2), 21 forward-facing "
+        "cameras (20 trained)", 1, "cam00", data=REAL / "n3d_flame_steak_frame0", parser="neural-3d-video-data",
+        parser_options=("--downscale-factor", "2"),
     ),
 }
 """Scenes by name. ``panoptic`` holds out camera 06 (not the usual 10) because 10 has no masks; ``panoptic-video``

@@ -197,6 +197,19 @@ def test_outputs_shapes_range_and_density_outside_box():
     assert torch.allclose(no_times["density"], evaluate(field, positions, directions, torch.zeros_like(times))["density"])
 
 
+@pytest.mark.parametrize("initial_density", [0.05, 2.0, 20.0])
+def test_the_field_starts_from_its_initial_density(initial_density):
+    """``initial_density`` sets the density of the untrained field (the density MLP's output bias), within the spread
+    that the random planes and weights give, where PyTorch's initialisation starts near exp(-1)."""
+    positions, times = random_inputs()
+    inside = (positions.abs() <= 1).all(dim=-1)
+    default = small_field().density_fn(positions, times)[inside].median()
+    chosen = small_field(initial_density=initial_density).density_fn(positions, times)[inside]
+    assert abs(math.log(default) + 1.0) < 0.5
+    assert abs(math.log(chosen.median()) - math.log(initial_density)) < 0.5
+    assert chosen.min() > 0.5 * initial_density and chosen.max() < 2.0 * initial_density
+
+
 def test_density_fn_and_head_names_follow_nerfstudio_fields():
     """nerfstudio code that takes a Field (density_fn for samplers, FieldHeadNames outputs) gets the same density
     from density_fn as from the full forward pass, and the SAM embedding and gear level under their own names."""

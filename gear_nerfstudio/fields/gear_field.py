@@ -114,6 +114,9 @@ class GearField(Field):
         spatial_distortion: contraction for unbounded scenes, None for bounded scenes.
         appearance_dim: channels of the per-camera appearance codes that enter the colour MLP; 0 for none.
         num_cameras: cameras of the rig (codes); trained_cameras: those with training images.
+        initial_density: density (per scene unit) the field starts from everywhere: the density MLP's output bias
+            is set to log(initial_density) + 1; None keeps PyTorch's initialisation (raw outputs near 0, so sigma
+            near exp(-1)).
     """
 
     def __init__(
@@ -136,6 +139,7 @@ class GearField(Field):
         appearance_dim: int = 0,
         num_cameras: int = 0,
         trained_cameras: Sequence[int] = (),
+        initial_density: Optional[float] = None,
     ) -> None:
         super().__init__()
         if num_gears < 1:
@@ -175,6 +179,9 @@ class GearField(Field):
         self.density_net = MLP(
             in_dim=feature_dim, num_layers=2, layer_width=hidden_dim, out_dim=1 + geo_feat_dim, implementation="torch"
         )
+        if initial_density is not None:
+            with torch.no_grad():
+                self.density_net.layers[-1].bias[0] = math.log(initial_density) + 1.0
         self.appearance = CameraAppearance(num_cameras, appearance_dim, trained_cameras) if appearance_dim else None
         self.color_net = MLP(
             in_dim=self.direction_encoding.get_out_dim() + geo_feat_dim + appearance_dim,

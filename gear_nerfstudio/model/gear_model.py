@@ -99,6 +99,9 @@ class GearNeRFModelConfig(ModelConfig):
     """Channels of the per-camera appearance code in the colour MLP (exposure and white balance differ between a
     rig's cameras); 0 turns it off. The held-out camera, and any camera without a rig index (viewer, camera paths),
     is rendered with the mean code of the training cameras."""
+    initial_density: Optional[float] = None
+    """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's
+    initialisation, about exp(-1) = 0.37 (K-Planes)."""
     sam_head_dim: Optional[int] = 32
     """SAM embedding dimension per sample before the learned lift to sam_dim; None predicts sam_dim."""
     num_samples: int = 64
@@ -239,6 +242,7 @@ class GearNeRFModel(Model):
             appearance_dim=config.appearance_dim if metadata.get("camera_names") else 0,
             num_cameras=len(metadata.get("camera_names", ())),
             trained_cameras=sorted(set(torch.as_tensor(metadata.get("camera_ids", [])).tolist())),
+            initial_density=config.initial_density,
         )
 
         self.proposal_networks = torch.nn.ModuleList()
