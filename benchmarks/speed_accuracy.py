@@ -29,8 +29,9 @@ thing each changes:
   baselines ``uniform-128``, ``naive-medium`` and ``no-embedding``; for real captures ``no-appearance``,
   ``uniform`` (the paper's n uniform base samples instead of the presets' proposal networks) and
   ``random-background`` (nerfstudio's random background colour in training; see ``method_overrides``); for the
-  budget ``lr-0.01`` (every parameter group) and ``rays-2048`` (with ``--iterations`` halved: equal rays), ``initial-density``; for
-  forward-facing rigs ``contraction`` (nerfacto's scene contraction beyond the box and its far plane).
+  budget ``lr-0.01`` (every parameter group) and ``rays-2048`` (with ``--iterations`` halved: equal rays); the
+  field's untrained density ``initial-density``; for forward-facing rigs ``contraction`` (nerfacto's scene
+  contraction beyond the box and its far plane).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
 the others.

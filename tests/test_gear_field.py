@@ -208,6 +208,8 @@ def test_the_field_starts_from_its_initial_density(initial_density):
     assert abs(math.log(default) + 1.0) < 0.5
     assert abs(math.log(chosen.median()) - math.log(initial_density)) < 0.5
     assert chosen.min() > 0.5 * initial_density and chosen.max() < 2.0 * initial_density
+    with pytest.raises(ValueError, match="initial_density must be > 0, got 0"):
+        small_field(initial_density=0.0)
 
 
 def test_density_fn_and_head_names_follow_nerfstudio_fields():

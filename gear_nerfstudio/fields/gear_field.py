@@ -144,6 +144,8 @@ class GearField(Field):
         super().__init__()
         if num_gears < 1:
             raise ValueError(f"num_gears must be >= 1, got {num_gears}")
+        if initial_density is not None and not initial_density > 0:
+            raise ValueError(f"initial_density must be > 0, got {initial_density}")
         self.register_buffer("aabb", aabb.clone().float())
         self.num_gears = num_gears
         self.feature_dim = feature_dim
