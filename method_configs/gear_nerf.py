@@ -2,8 +2,8 @@
 
 * ``gear-nerf``: the paper's settings (M = 32, N_gear = 4, n = 64, Adam with lr 0.02).
 * ``gear-nerf-small``: CPU preset (small planes, n = 24 base samples from small proposal networks, 1024 rays per
-  batch, 3,750 iterations: about the CPU time that 5,000 iterations of 24 uniform samples took, 12-15 minutes
-  single-threaded on 30 frames of 30 cameras at 304x168).
+  batch, 3,750 iterations: about the CPU time that 5,000 iterations of 24 uniform samples took; 1,546 s of CPU time
+  single-threaded on 30 frames of 30 cameras at 304x168 on a 2-core machine, ``real_capture_causes.md``).
 * ``gear-nerf-baseline``: N_gear = 1, i.e. plain K-Planes, sized and sampled as the small preset.
 
 Every preset takes its base samples from proposal networks (K-Planes), has a per-camera appearance code and
