@@ -31,15 +31,21 @@ def contact_sheet(labels: Sequence[str], rows: Sequence[Sequence[Image.Image]]) 
     return sheet
 
 
+def held_out_stems(run: Path) -> List[str]:
+    """The ``held_out_<frame>`` names of the held-out frames a ``speed_accuracy.py`` run folder holds."""
+    stems = sorted({f.name.rsplit("_", 1)[0] for f in run.glob("held_out_*_truth.png")})
+    if not stems:
+        raise SystemExit(f"error: {run} has no held_out_*_truth.png (a speed_accuracy.py run folder has them)")
+    return stems
+
+
 def main(
     output: tyro.conf.Positional[Path], runs: tyro.conf.Positional[Tuple[str, ...]], gear_maps: Tuple[str, ...] = ()
 ) -> None:
     """Write the contact sheet of ``runs`` (``label=run folder``, the first one's ground truth) to ``output``."""
     folders = dict(run.split("=", 1) for run in runs)
     first = Path(next(iter(folders.values())))
-    stems = sorted({f.name.rsplit("_", 1)[0] for f in first.glob("held_out_*_truth.png")})
-    if not stems:
-        raise SystemExit(f"error: {first} has no held_out_*_truth.png (a speed_accuracy.py run folder has them)")
+    stems = held_out_stems(first)
     columns: List[Tuple[str, Path, str]] = [("ground truth", first, "truth")]
     columns += [(label, Path(folder), "render") for label, folder in folders.items()]
     columns += [(f"{label} gear map", Path(folders[label]), "gear") for label in gear_maps]

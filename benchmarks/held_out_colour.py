@@ -15,12 +15,12 @@ from pathlib import Path
 from typing import Tuple
 
 import numpy as np
+import torch
 import tyro
+from compare_views import held_out_stems
 from PIL import Image
 
-
-def psnr(render: np.ndarray, truth: np.ndarray) -> float:
-    return float(-10 * np.log10(np.mean((render - truth) ** 2)))
+from gear_nerfstudio.model.gear_model import psnr
 
 
 def colour_fitted(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -37,13 +37,11 @@ def main(runs: tyro.conf.Positional[Tuple[Path, ...]]) -> None:
     """Print, per run folder, the mean PSNR over its held-out frames before and after the colour fit."""
     for run in runs:
         scores = []
-        for truth_path in sorted(run.glob("held_out_*_truth.png")):
-            truth = np.asarray(Image.open(truth_path).convert("RGB"), dtype=np.float64) / 255
-            render_path = truth_path.with_name(truth_path.name.replace("_truth", "_render"))
-            render = np.asarray(Image.open(render_path).convert("RGB"), dtype=np.float64) / 255
-            scores.append((psnr(render, truth), psnr(colour_fitted(render, truth), truth)))
-        if not scores:
-            raise SystemExit(f"error: {run} has no held_out_*_truth.png (a speed_accuracy.py run folder has them)")
+        for stem in held_out_stems(run):
+            truth, render = (np.asarray(Image.open(run / f"{stem}_{kind}.png").convert("RGB"), dtype=np.float64) / 255
+                             for kind in ("truth", "render"))  # fmt: skip
+            corrected = colour_fitted(render, truth)
+            scores.append([float(psnr(torch.from_numpy(image), torch.from_numpy(truth))) for image in (render, corrected)])
         plain, fitted = np.mean(scores, axis=0)
         print(f"{run}: {len(scores)} frames, PSNR {plain:.2f} dB, after the colour fit {fitted:.2f} dB")
 
