@@ -1,7 +1,10 @@
 """On-disk cache of decoded, downscaled frames, so that nerfstudio loads frames as ordinary PNG files.
 
 Videos are decoded one frame at a time (never all in RAM); each requested frame is written as
-`<cache>/<key>/<frame:05d>.png`, where the key changes when the source file or the output size changes.
+`<cache>/<key>/<frame:05d>.png`, where the key changes when the source file or the output size changes. The
+videos are checked one after another, then written by one thread per core, one video each; the cameras of an image
+layout are checked and resized likewise (`gear_nerfstudio.parallel`). PNG compression level 1: a 608x336 frame of
+the real capture is written 2.8x faster than at Pillow's default level 6, for 18 % more bytes.
 Files are written under a temporary name and renamed, so an interrupted run leaves nothing half-written.
 Damaged frames (decoder errors, pictures missing from a video, PNG files that fail their checksums or do not
 decode) are found while the cache is built: they stop the run with an error naming the file and the frame, or,
@@ -10,13 +13,14 @@ when the user asks, are left out with a warning.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Optional, Sequence, Set, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -24,6 +28,7 @@ from PIL import Image
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.parallel import available_cores, run_parallel
 
 
 def default_cache_dir() -> Path:
@@ -46,7 +51,7 @@ def _source_key(path: Path, extra: str) -> str:
 
 def _write_atomic_png(rgb: np.ndarray, path: Path) -> None:
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # runs sharing the cache write their own
-    Image.fromarray(rgb).save(tmp, format="PNG")
+    Image.fromarray(rgb).save(tmp, format="PNG", compress_level=1)
     os.replace(tmp, path)
 
 
@@ -135,9 +140,10 @@ def cache_video_frames(
     if not todo:
         return paths
     skipped: List[str] = []
+    writes: List[Callable[[], None]] = []
     with _progress() as progress:
         task = progress.add_task("Checking and decoding video frames", total=2 * len(todo) * len(frames))
-        for i in todo:
+        for i in todo:  # one video at a time: `_decoder_reports` hears every thread's decoder
             timestamps = _video_timestamps(videos[i])
             if max(frames) >= len(timestamps):
                 raise DatasetError(f"{videos[i]}: the video has {len(timestamps)} frames, not {max(frames) + 1}")
@@ -149,11 +155,11 @@ def cache_video_frames(
                 raise _stop(_damaged(videos[i], first, damaged[first]) + more)
             targets = {frame: path for frame, path in zip(frames, paths[i]) if frame not in damaged}
             folders[i].mkdir(parents=True, exist_ok=True)
-            _write_frames(videos[i], timestamps, targets, sizes[i])
-            progress.advance(task, len(frames))
+            writes.append(functools.partial(_write_frames, videos[i], timestamps, targets, sizes[i]))
             for frame in sorted(damaged):
                 paths[i][frames.index(frame)] = None
                 skipped.append(_damaged(videos[i], frame, damaged[frame]))
+        run_parallel(writes, available_cores(), lambda: progress.advance(task, len(frames)))
     _warn_skipped(skipped)
     return paths
 
@@ -304,24 +310,34 @@ def cache_image_frames(
     with one warning line.
     """
     cache_dir = cache_dir or default_cache_dir()
-    out: List[List[Optional[Path]]] = []
-    skipped: List[str] = []
+    jobs = [
+        functools.partial(_checked_camera, paths, frames, size, cache_dir, skip_damaged)
+        for paths, size in zip(images, sizes)
+    ]
     with _progress() as progress:
-        task = progress.add_task("Checking and caching frames", total=sum(len(paths) for paths in images))
-        for paths, size in zip(images, sizes):
-            out.append([])
-            for image, frame in zip(paths, frames):
-                try:
-                    out[-1].append(_checked_image(image, size, cache_dir))
-                except (OSError, SyntaxError) as err:
-                    message = _damaged(image, frame, f"cannot read the image ({err})")
-                    if not skip_damaged:
-                        raise _stop(message) from err
-                    out[-1].append(None)
-                    skipped.append(message)
-                progress.advance(task)
-    _warn_skipped(skipped)
-    return out
+        task = progress.add_task("Checking and caching frames", total=len(images) * len(frames))
+        cameras = run_parallel(jobs, available_cores(), lambda: progress.advance(task, len(frames)))
+    _warn_skipped([message for _, messages in cameras for message in messages])
+    return [paths for paths, _ in cameras]
+
+
+def _checked_camera(
+    images: Sequence[Path], frames: Sequence[int], size: Tuple[int, int], cache_dir: Path, skip_damaged: bool
+) -> Tuple[List[Optional[Path]], List[str]]:
+    """One camera's frames through `_checked_image`: the paths to load (None for a damaged frame left out) and
+    the warning of each frame left out."""
+    paths: List[Optional[Path]] = []
+    skipped: List[str] = []
+    for image, frame in zip(images, frames):
+        try:
+            paths.append(_checked_image(image, size, cache_dir))
+        except (OSError, SyntaxError) as err:
+            message = _damaged(image, frame, f"cannot read the image ({err})")
+            if not skip_damaged:
+                raise _stop(message) from err
+            paths.append(None)
+            skipped.append(message)
+    return paths, skipped
 
 
 def _checked_image(image: Path, size: Tuple[int, int], cache_dir: Path) -> Path:

@@ -27,6 +27,7 @@ import numpy as np
 from PIL import Image
 from scipy import ndimage
 
+from gear_nerfstudio.parallel import available_cores
 from gear_nerfstudio.sam.interface import Embedding, SamBackend, cells_per_pixel, valid_grid
 
 _PIXELS_PER_CELL = 4  # resolution at which the hand-made features are computed
@@ -95,12 +96,14 @@ class BuiltinSamBackend(SamBackend):
     """Weight-free stand-in for SAM's encoder and prompt decoder (see the module docstring).
 
     Plain numpy / scipy on the CPU: the maps are small (64 x 64 cells), where thread start-up would
-    cost more than the work.
+    cost more than the work. So each encode runs on one core, and the feature cache encodes one image per core
+    at a time (2 threads encoded 40 frames of the real capture at 608x336 in 1.4 s, one thread in 2.9 s).
     """
 
     name = "builtin"
     embedding_dim = 256
     grid_size = 64
+    parallel_encodes = available_cores()
 
     def __init__(self) -> None:
         gaussian = np.random.default_rng(_SEED).standard_normal((self.embedding_dim, _RAW_DIM))

@@ -29,6 +29,7 @@ built-in decoder's masks.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -44,6 +45,7 @@ from PIL import Image
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from torch import Tensor
 
+from gear_nerfstudio.parallel import run_parallel
 from gear_nerfstudio.sam.interface import Embedding, SamBackend, cells_per_pixel
 
 MAGIC = b"GEARSAM2"
@@ -191,16 +193,16 @@ class SamFeatureCache:
         self._open.pop(image_path, None)
 
     def precompute(self, image_paths: Optional[Sequence[Path]] = None, description: str = "") -> int:
-        """Encode every image (default: `image_paths`) whose file is missing or stale; returns how many."""
+        """Encode every image (default: `image_paths`) whose file is missing or stale, `backend.parallel_encodes`
+        at a time; returns how many."""
         paths = self.image_paths if image_paths is None else [Path(p).resolve() for p in image_paths]
         missing = [p for p in paths if self._valid_header(p) is None]
         if missing:
             columns = (TextColumn("[bold blue]{task.description}"), BarColumn(), MofNCompleteColumn())
             with Progress(*columns, TimeRemainingColumn()) as progress:
                 task = progress.add_task(description or f"SAM features ({self.backend.name})", total=len(missing))
-                for path in missing:
-                    self.compute(path)
-                    progress.advance(task)
+                jobs = [functools.partial(self.compute, path) for path in missing]
+                run_parallel(jobs, self.backend.parallel_encodes, lambda: progress.advance(task))
         return len(missing)
 
     def _table(self, image_path: Path) -> Tuple[np.memmap, np.ndarray, Tuple[int, int]]:

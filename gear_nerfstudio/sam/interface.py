@@ -69,11 +69,14 @@ class SamBackend(ABC):
             invalidates cached features.
         embedding_dim: C of the embeddings.
         grid_size: G of the embeddings.
+        parallel_encodes: how many images `SamFeatureCache.precompute` encodes at once: 1 (the default) for an
+            encoder that already uses every core, more for one that runs on one core.
     """
 
     name: str
     embedding_dim: int
     grid_size: int
+    parallel_encodes: int = 1
 
     @property
     @abstractmethod

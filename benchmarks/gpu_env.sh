@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# The project's Python environment on a lent GPU machine (the workplace's device tool), whose image has PyTorch,
+# CUDA and most of nerfstudio's dependencies but not nerfstudio, and no network.
+#
+#   bash benchmarks/gpu_env.sh pack    here: the missing packages, as Python 3.12 / x86-64 files, into
+#                                      .device_site/site.tar.xz (xz: the wheels themselves are over the 64 MiB that a
+#                                      call carries, with the video), and the real capture into .device_site/real
+#   bash benchmarks/gpu_env.sh setup   there (carry .device_site): unpack into /tmp/site, install this checkout
+#                                      into it (so that nerfstudio finds the plugin's entry points), and put the
+#                                      capture where the benchmarks look (../shared/data/real); then
+#                                      `export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH`
+#
+# The packages are those nerfstudio 1.1.5 imports when it trains and evaluates gear-nerf, at the versions of
+# constraints.txt, less what the device image already has; fpsample is 0.3.3
+# (nerfstudio only imports it, for splatfacto; 1.0.2 has no Python 3.12 file in the package index here).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PACKAGES=(appdirs==1.4.4 av==18.1.0 defusedxml==0.7.1 dill==0.4.1 docstring_parser==0.18.0 fpsample==0.3.3
+  gsplat==1.4.0 mediapy==1.2.7 msgspec==0.22.0 multiprocess==0.70.19 nerfacc==0.5.2 nerfstudio==1.1.5 pathos==0.3.5
+  pox==0.3.7 ppft==1.7.8 pyquaternion==0.9.9 pytorch-msssim==1.0.0 rawpy==0.28.0 shtab==1.13.0 splines==0.3.0 tensorly==0.10.0
+  torch_fidelity==0.4.0 typeguard==4.6.0 tyro==1.0.17 viser==0.2.7 websockets==17.4)
+case "${1:-}" in
+  pack)
+    rm -rf .device_site && mkdir -p .device_site/site .device_site/real
+    .venv/bin/python -m pip install -q --no-deps --no-compile --target .device_site/site --implementation cp \
+      --python-version 3.12 --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
+      --platform manylinux1_x86_64 --only-binary=:all: "${PACKAGES[@]}"
+    tar cf - -C .device_site site | xz -9 -T2 >.device_site/site.tar.xz && rm -rf .device_site/site
+    cp -r ../shared/data/real/panoptic_basketball_video .device_site/real/
+    du -sh .device_site/*
+    ;;
+  setup)
+    python3 -c "import tarfile; tarfile.open('.device_site/site.tar.xz').extractall('/tmp', filter='data')"
+    python3 -m pip install -q --no-deps --no-build-isolation --no-index --no-compile --target /tmp/site .
+    mkdir -p ../shared/data/real && cp -r .device_site/real/* ../shared/data/real/
+    ;;
+  *)
+    echo "usage: bash benchmarks/gpu_env.sh pack|setup" >&2
+    exit 2
+    ;;
+esac
