@@ -19,13 +19,13 @@ def available_cores() -> int:
 
 def run_parallel(jobs: Sequence[Callable[[], T]], workers: int, done: Callable[[], None]) -> List[T]:
     """Run `jobs` on up to `workers` threads, calling `done` in this thread as each one finishes; returns their
-    results in the order of `jobs`. The first job to fail cancels the jobs not started yet, and its error is
-    raised once the running ones have finished."""
+    results in the order of `jobs`. Once a job fails, the jobs not started yet return at once without running, and
+    its error is raised when the running ones have finished."""
     failed = threading.Event()
 
     def guarded(job: Callable[[], T]) -> Optional[T]:
         if failed.is_set():
-            return None  # not started: a job has failed
+            return None  # a job has failed, or the caller was interrupted: do not start
         try:
             return job()
         except BaseException:
@@ -38,8 +38,7 @@ def run_parallel(jobs: Sequence[Callable[[], T]], workers: int, done: Callable[[
             for future in as_completed(futures):
                 future.result()
                 done()
-        except BaseException:
-            for future in futures:
-                future.cancel()
+        except BaseException:  # an interrupt here, too, leaves the jobs not started undone
+            failed.set()
             raise
     return [future.result() for future in futures]
