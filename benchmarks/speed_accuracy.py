@@ -30,9 +30,11 @@ thing each changes:
   baselines ``uniform-128``, ``naive-medium`` and ``no-embedding``; for real captures ``no-appearance``,
   ``uniform`` (the paper's n uniform base samples instead of the presets' proposal networks) and
   ``random-background`` (nerfstudio's random background colour in training; see ``method_overrides``); for the
-  budget ``lr-0.01`` (every parameter group) and ``rays-2048`` (with ``--iterations`` halved: equal rays); the
-  field's untrained density ``initial-density``; for forward-facing rigs ``contraction`` (nerfacto's scene
-  contraction beyond the box and its far plane).
+  budget ``lr-0.01`` (every parameter group), ``rays-2048`` (with ``--iterations`` halved: equal rays), and
+  cheaper iterations ``samples-16`` and ``samples-16-rays-768``; ``proposal-warmup`` (the proposal networks'
+  update warm-up at a sixth of the run, K-Planes' 5,000 of 30,000, instead of a fixed 5,000 steps); the field's
+  untrained density ``initial-density``; for forward-facing rigs ``contraction`` (nerfacto's scene contraction
+  beyond the box and its far plane).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
 the others.
@@ -116,15 +118,20 @@ METHODS: Dict[str, str] = {
     "rays-2048": "Gear-NeRF on 2,048 rays per batch instead of 1,024",
     "initial-density": "Gear-NeRF starting from density 2 per scene unit instead of about 0.37",
     "contraction": "Gear-NeRF with space beyond the scene box contracted (far plane 1,000, as nerfacto)",
+    "samples-16": "Gear-NeRF with 16 base samples per ray instead of 24",
+    "samples-16-rays-768": "Gear-NeRF with 16 base samples per ray and 768 rays per batch",
+    "proposal-warmup": "Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
 }
 """Method keys and their labels in the tables and the plot."""
 
 
-def method_overrides(method: str, frames: int) -> List[str]:
-    """``ns-train`` overrides of a method on top of the base preset."""
+def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
+    """``ns-train`` overrides of a method on top of the base preset, for a run of ``iterations``."""
     no_sam = ["--pipeline.datamanager.use-sam-features", "False", "--pipeline.gear-updates.sam-loss-weight", "0"]
     single = ["--pipeline.model.num-gears", "1"]
     uniform = ["--pipeline.model.base-sampler", "uniform"]
+    samples_16 = ["--pipeline.model.num-samples", "16"]
+    rays_768 = ["--pipeline.datamanager.train-num-rays-per-batch", "768"]
     overrides = {
         "gear-nerf": [],
         "kplanes": single,
@@ -143,6 +150,9 @@ def method_overrides(method: str, frames: int) -> List[str]:
         "rays-2048": ["--pipeline.datamanager.train-num-rays-per-batch", "2048"],
         "initial-density": ["--pipeline.model.initial-density", "2"],
         "contraction": ["--pipeline.model.unbounded", "True", "--pipeline.model.far-plane", "1000"],
+        "samples-16": samples_16,
+        "samples-16-rays-768": [*samples_16, *rays_768],
+        "proposal-warmup": ["--pipeline.model.proposal-warmup", str(max(1, iterations // 6))],
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
@@ -291,7 +301,7 @@ class SpeedAccuracyBenchmark:
             if name not in SCENES:
                 raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)}")
             for method in (*self.main_methods, *self.ablations):
-                method_overrides(method, SCENES[name].frames)  # fail early on an unknown name
+                method_overrides(method, SCENES[name].frames, self.preset_iterations())  # fail early on an unknown name
         self.output.mkdir(parents=True, exist_ok=True)
         started = datetime.datetime.now(datetime.timezone.utc)
         load_before = os.getloadavg()
@@ -357,7 +367,7 @@ class SpeedAccuracyBenchmark:
             "--machine.device-type", self.device, "--vis", "tensorboard",
             "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam-cache"),
             *([] if self.iterations is None else schedule_options(iterations)),
-            *method_overrides(method, scene.frames),
+            *method_overrides(method, scene.frames, iterations),
             *scene.dataparser(self.output),
         ]  # fmt: skip
 
