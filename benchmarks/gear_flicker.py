@@ -48,8 +48,11 @@ def raised_shares(config: Path) -> List[float]:
     outputs = model.render_view(camera)
     surface = model.visible_surface(camera, outputs).reshape(-1, 3)
     static = surface[model.visible_gear_levels(camera, outputs).reshape(-1) == 1]
-    times = dataset.cameras.times[:, 0].tolist()
-    return [float((model.field.gear_levels(static, static.new_full((len(static), 1), t)) >= 2).float().mean()) for t in times]
+    shares = []
+    for t in dataset.cameras.times[:, 0].tolist():
+        levels = model.field.gear_levels(static, static.new_full((len(static), 1), t))
+        shares.append(float((levels >= 2).float().mean()))
+    return shares
 
 
 def main(gear_nerf: Path, one_gear: Path) -> None:
