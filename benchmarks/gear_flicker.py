@@ -15,22 +15,27 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import List
+from typing import List, Tuple
 
 import numpy as np
 import torch
+from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.eval_utils import eval_setup
 
-from gear_nerfstudio.model.gear_model import psnr
+from gear_nerfstudio.model.gear_model import GearNeRFModel, psnr
 
 FLICKER_SHARE = 0.1
 """A frame at which at least this share of the static surface is at gear >= 2 counts as a flicker frame."""
 
 
-def frame_psnrs(config: Path) -> List[float]:
-    """Held-out PSNR of one run at every frame of its evaluation split."""
+def held_out(config: Path) -> Tuple[GearNeRFModel, InputDataset]:
+    """A trained run's model and its held-out (evaluation) dataset."""
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
-    model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
+    return pipeline.model, pipeline.datamanager.eval_dataset
+
+
+def frame_psnrs(model: GearNeRFModel, dataset: InputDataset) -> List[float]:
+    """Held-out PSNR of one run at every frame of its evaluation split."""
     values = []
     for index in range(len(dataset)):
         outputs = model.get_outputs_for_camera(dataset.cameras[index : index + 1])
@@ -39,10 +44,8 @@ def frame_psnrs(config: Path) -> List[float]:
 
 
 @torch.no_grad()
-def raised_shares(config: Path) -> List[float]:
+def raised_shares(model: GearNeRFModel, dataset: InputDataset) -> List[float]:
     """Per frame, the share of the middle frame's gear-1 surface (held-out view) that is at gear >= 2."""
-    _, pipeline, _, _ = eval_setup(config, test_mode="test")
-    model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
     middle = len(dataset) // 2
     camera = dataset.cameras[middle : middle + 1]
     outputs = model.render_view(camera)
@@ -56,8 +59,9 @@ def raised_shares(config: Path) -> List[float]:
 
 
 def main(gear_nerf: Path, one_gear: Path) -> None:
-    shares = np.array(raised_shares(gear_nerf))
-    ours, baseline = np.array(frame_psnrs(gear_nerf)), np.array(frame_psnrs(one_gear))
+    model, dataset = held_out(gear_nerf)
+    shares, ours = np.array(raised_shares(model, dataset)), np.array(frame_psnrs(model, dataset))
+    baseline = np.array(frame_psnrs(*held_out(one_gear)))
     print("| frame | static surface at gear >= 2 | Gear-NeRF PSNR (dB) | one gear PSNR (dB) | difference |")
     print("|---|---|---|---|---|")
     for frame, (share, a, b) in enumerate(zip(shares, ours, baseline)):
