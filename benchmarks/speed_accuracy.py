@@ -34,8 +34,7 @@ thing each changes:
   cheaper iterations ``samples-16`` and ``samples-16-rays-768``; ``proposal-warmup`` (the proposal networks'
   update warm-up at a sixth of the run, K-Planes' 5,000 of 30,000, instead of a fixed 5,000 steps); the field's
   untrained density ``initial-density``; for forward-facing rigs ``contraction`` (nerfacto's scene contraction
-  beyond the box and its far plane); ``no-rig-stay`` (S_stay of the gear updates from the update views' own
-  pixels only, as in the paper, instead of also from other cameras' still pixels at the same frame).
+  beyond the box and its far plane).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
 the others.
@@ -122,7 +121,6 @@ METHODS: Dict[str, str] = {
     "samples-16": "Gear-NeRF with 16 base samples per ray instead of 24",
     "samples-16-rays-768": "Gear-NeRF with 16 base samples per ray and 768 rays per batch",
     "proposal-warmup": "Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
-    "no-rig-stay": "Gear-NeRF with S_stay from the update views' own pixels only (the paper's)",
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -155,7 +153,6 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "samples-16": samples_16,
         "samples-16-rays-768": [*samples_16, *rays_768],
         "proposal-warmup": ["--pipeline.model.proposal-warmup", str(max(1, iterations // 6))],
-        "no-rig-stay": ["--pipeline.gear-updates.stay-cameras", "0"],
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")

@@ -266,30 +266,3 @@ def test_the_guard_reviews_each_update_and_undoes_one_after_which_its_views_are_
     strict(120)  # due: reviewed and undone; the update due at the same step no longer runs
     assert int(state.num_undone) == 1 and bool(state.finished) and int(state.num_updates) == 1
     assert all(torch.equal(value, before[key]) for key, value in model.gear_assignment().items())
-
-
-def test_s_stay_from_the_rig_samples_other_cameras_at_the_view_frame(loop_run):
-    """``rig_stay``: rays through still pixels of ``stay_cameras`` other training cameras at the frame of the view,
-    split evenly between them, at that frame's time; none when it is off or when the motion gate is off."""
-    _, trainer, updater = loop_run
-    pipeline = trainer.pipeline
-    metadata = pipeline.datamanager.train_dataset.metadata
-    index = int(torch.nonzero(metadata["frame_ids"] == 3)[0, 0])
-    others = int(((metadata["frame_ids"] == 3) & (metadata["camera_ids"] != metadata["camera_ids"][index])).sum())
-
-    def rig_stay(num_rays: int, **settings):
-        config = dataclasses.replace(updater.config, **settings)
-        state = GearUpdateState(pipeline.model.gear_assignment(), 4)
-        fresh = GearUpdater(config, pipeline.model, pipeline.datamanager, pipeline.sam_backend, updater.optimizer, state,
-                            rays_per_batch=1024, first_step=0, last_step=LOOP_ITERATIONS - 1)  # fmt: skip
-        return fresh.rig_stay(index, num_rays)
-
-    cameras = min(2, others)
-    samples = rig_stay(60, stay_cameras=cameras)
-    assert len(samples) == cameras
-    num_samples = pipeline.model.config.num_samples
-    for positions, times, weights in samples:
-        assert positions.shape == (60 // cameras * num_samples, 3) and weights.shape == (len(positions),)
-        assert torch.allclose(times, torch.full_like(times, 3 / (LOOP_SPEC.frames - 1)))
-    assert len(rig_stay(60, stay_cameras=others + 3)) == others
-    assert rig_stay(60, stay_cameras=0) == [] and rig_stay(60, motion_threshold=0.0) == []

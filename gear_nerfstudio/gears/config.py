@@ -62,7 +62,3 @@ class GearUpdateConfig:
     only: the guard decides on training views)."""
     motion_frames: int = 8
     """Other frames of the same camera compared with the view's frame (spread over the video)."""
-    stay_cameras: int = 4
-    """S_stay from the rig (motion gate on): per view of an update, this many other training cameras at the same
-    frame add rays through their still pixels, held at gear 1; 0 keeps S_stay to the view's own pixels (the
-    paper)."""

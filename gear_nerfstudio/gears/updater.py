@@ -24,12 +24,6 @@ only moving patches give positive prompts, and the upshift mask is cut to moving
 static texture (fine detail not yet fitted) thus never upshifts, and neither does a static scene: gear 1
 already models everything that does not change in time, and higher gears there would only cost time.
 
-Addition to the paper, S_stay from the rig (``stay_cameras``, with the motion gate): Eq 4's g is a sum of
-products h'_j(space) k'_j(coordinate, t), so an upshift at (x, t) raises a time-plane cell and with it g over a
-whole slice of space at time t, static wall included, which the update view's own S_stay may not see. Other
-training cameras at each view's frame add rays through their still pixels to S_stay, held at gear 1, so the slice
-is held down wherever the rig sees it still.
-
 Addition to the paper, the guard (`guard_tolerance`): an update is reviewed L epochs later, when the next one
 is due. Its training views are rendered again and compared with their renders just before it; an update after
 which they are worse is undone and ends the updates. An update is not judged right after it: the regions that
@@ -388,34 +382,7 @@ class GearUpdater:
                 rows, cols = pixels.long().unbind(-1)
                 unchanged = (loss_map.local_change[rows, cols] < config.motion_threshold) & ~mask[rows, cols]
                 still.append(unchanged.repeat_interleave(len(weight) // len(pixels)) & (config.motion_threshold > 0))
-            for position, time, weight in self.rig_stay(loss_map.image_index, per_view // 2):
-                points.append(position)
-                times.append(time)
-                weights.append(weight)
-                upshift.append(torch.zeros(len(weight), dtype=torch.bool, device=weight.device))
-                still.append(torch.ones(len(weight), dtype=torch.bool, device=weight.device))
         return torch.cat(points), torch.cat(times), torch.cat(weights), torch.cat(upshift), torch.cat(still)
-
-    def rig_stay(self, image_index: int, num_rays: int) -> List[Tuple[Tensor, Tensor, Tensor]]:
-        """S_stay from the rig: base samples (positions, times, weights) on ``num_rays`` rays through still pixels
-        (ground-truth change to the neighbouring frames below the motion threshold) of ``stay_cameras`` other
-        training cameras at the frame of image ``image_index``, split evenly between them; none with the motion
-        gate off."""
-        config = self.config
-        if config.motion_threshold <= 0 or config.stay_cameras <= 0:
-            return []
-        metadata = self.views.train_dataset.metadata
-        cameras, frames = metadata["camera_ids"], metadata["frame_ids"]
-        others = torch.nonzero((frames == frames[image_index]) & (cameras != cameras[image_index]))[:, 0]
-        chosen = others[torch.from_numpy(self.rng.permutation(len(others))[: config.stay_cameras])].tolist()
-        samples = []
-        for index in chosen:
-            camera, image = self.view(self.views.train_dataset, index)
-            still = self.change(index, image, 2, window=1) < config.motion_threshold
-            pixels = self.choose_pixels(still, max(1, num_rays // len(chosen)))
-            if len(pixels):
-                samples.append(self.target.sample_weights(camera, pixels))
-        return samples
 
     def choose_pixels(self, selected: Tensor, count: int) -> Tensor:
         """Up to ``count`` distinct pixels (row, col) of a boolean map, drawn at random."""
