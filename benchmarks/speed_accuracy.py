@@ -121,6 +121,8 @@ METHODS: Dict[str, str] = {
     "samples-16": "Gear-NeRF with 16 base samples per ray instead of 24",
     "samples-16-rays-768": "Gear-NeRF with 16 base samples per ray and 768 rays per batch",
     "proposal-warmup": "Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
+    "gear-rows-1": "Gear-NeRF with a gear function constant in time (k' of 1 row)",
+    "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -153,6 +155,8 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "samples-16": samples_16,
         "samples-16-rays-768": [*samples_16, *rays_768],
         "proposal-warmup": ["--pipeline.model.proposal-warmup", str(max(1, iterations // 6))],
+        "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
+        "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
