@@ -123,10 +123,6 @@ METHODS: Dict[str, str] = {
     "proposal-warmup": "Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
     "gear-rows-1": "Gear-NeRF with a gear function constant in time (k' of 1 row)",
     "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
-    "uniform-rays": "Gear-NeRF with training pixels drawn uniformly instead of by ISG weight",
-    "kplanes-uniform-rays": "plain K-Planes with training pixels drawn uniformly instead of by ISG weight",
-    "isg-from-start": "Gear-NeRF with training pixels drawn by ISG weight from the first step",
-    "isg-floor-0.5": "Gear-NeRF with training pixels drawn by ISG weight, at least 0.5, from the first step",
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -138,7 +134,6 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
     uniform = ["--pipeline.model.base-sampler", "uniform"]
     samples_16 = ["--pipeline.model.num-samples", "16"]
     rays_768 = ["--pipeline.datamanager.train-num-rays-per-batch", "768"]
-    uniform_rays = ["--pipeline.datamanager.isg-gamma", "None"]
     overrides = {
         "gear-nerf": [],
         "kplanes": single,
@@ -162,10 +157,6 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "proposal-warmup": ["--pipeline.model.proposal-warmup", str(max(1, iterations // 6))],
         "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
         "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
-        "uniform-rays": uniform_rays,
-        "kplanes-uniform-rays": [*single, *uniform_rays],
-        "isg-from-start": ["--pipeline.datamanager.isg-start-step", "0"],
-        "isg-floor-0.5": ["--pipeline.datamanager.isg-start-step", "0", "--pipeline.datamanager.isg-floor", "0.5"],
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")

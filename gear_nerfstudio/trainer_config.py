@@ -3,8 +3,7 @@ training starts.
 
 - The input is checked before anything is printed or written: ns-train calls ``print_to_terminal`` first with the
   final options, so it reads the data (calibration, frame window, frame cache, damaged frames), builds the SAM
-  backend (model files) and checks the gear-update plan (and warns when a run ends before its ray importance
-  sampling would start). Bad input then stops with one line
+  backend (model files) and checks the gear-update plan. Bad input then stops with one line
   (``gear_nerfstudio.errors``), not after the 220-line config and with no run folder left behind.
 - The run is named after the scene folder instead of nerfstudio's "unnamed" (nerfstudio takes the name from
   ``--pipeline.datamanager.data``, which the dataset subcommands' ``--data`` does not set).
@@ -19,7 +18,6 @@ from typing import Optional
 
 import tyro
 from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.utils.rich_utils import CONSOLE
 
 from gear_nerfstudio.gears.schedule import no_updates_error, planned_updates
 from gear_nerfstudio.pipeline import check_sam_dim
@@ -54,13 +52,6 @@ class GearTrainerConfig(TrainerConfig):
             last_step = self.max_num_iterations - 1
             if not planned_updates(updates, 0, last_step):
                 raise no_updates_error(updates, 0, last_step)
-        datamanager = pipeline.datamanager
-        if new_run and datamanager.isg_gamma is not None and datamanager.isg_start_step >= self.max_num_iterations:
-            CONSOLE.log(
-                f"[yellow]Gear-NeRF: every training pixel of this run is drawn uniformly: ray importance sampling "
-                f"starts at step {datamanager.isg_start_step} (--pipeline.datamanager.isg-start-step), after the "
-                f"run's {self.max_num_iterations} iterations"
-            )
 
     def set_experiment_name(self) -> None:
         """Name the run after the scene folder (``--data`` of the dataset subcommand or of ns-train)."""

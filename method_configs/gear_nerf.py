@@ -36,18 +36,10 @@ EPOCHS_PER_RUN = 20
 its own default iterations as its epoch for L and L' (Sec 4.3)."""
 
 
-ISG_START = 0.25
-"""Share of a run's iterations drawn uniformly before training pixels are drawn by ISG weight (``isg_start_step``)."""
-
-
 def schedule_options(iterations: int) -> List[str]:
-    """``ns-train`` options that scale the gear-update schedule (an epoch is 1/20 of the run) and the start of ray
-    importance sampling to a run of this many iterations, as the presets do: for commands that train a preset for
-    fewer iterations than its default."""
-    return [
-        "--pipeline.gear-updates.iterations-per-epoch", str(max(1, iterations // EPOCHS_PER_RUN)),
-        "--pipeline.datamanager.isg-start-step", str(int(iterations * ISG_START)),
-    ]  # fmt: skip
+    """``ns-train`` options that scale the gear-update schedule to a run of this many iterations, as the presets
+    do (an epoch is 1/20 of the run): for commands that train a preset for fewer iterations than its default."""
+    return ["--pipeline.gear-updates.iterations-per-epoch", str(max(1, iterations // EPOCHS_PER_RUN))]
 
 
 def trainer_config(
@@ -83,7 +75,6 @@ def trainer_config(
                 train_num_times_to_repeat_images=100,
                 eval_num_images_to_sample_from=8,
                 eval_num_times_to_repeat_images=100,
-                isg_start_step=int(max_num_iterations * ISG_START),
             ),
             model=model,
             gear_updates=GearUpdateConfig(iterations_per_epoch=max_num_iterations // EPOCHS_PER_RUN),

@@ -100,15 +100,14 @@ def ns(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory):
     """A gear-nerf-small run of 20 iterations on a tiny synthetic N3D scene (24 x 18, 3 frames, 5 cameras), with
-    epochs of 1 iteration (gear updates at steps 3, 6 and 9) and training pixels drawn by ISG weight from step 10,
-    then resumed from its checkpoint for 10 more:
+    epochs of 1 iteration (gear updates at steps 3, 6 and 9), then resumed from its checkpoint for 10 more:
     (root, scene, first run folder, resumed run folder)."""
     root = tmp_path_factory.mktemp("commands")
     scene = write_synthetic_scene(root / "scene", SyntheticSpec(dataset="n3d", width=24, height=18, frames=3, cameras=5))
     common = [
         "--output-dir", str(root / "runs"), "--experiment-name", "tiny", "--machine.device-type", "cpu",
         "--vis", "tensorboard", "--steps-per-save", "10", "--steps-per-eval-all-images", "1000",
-        "--pipeline.gear-updates.iterations-per-epoch", "1", "--pipeline.datamanager.isg-start-step", "10",
+        "--pipeline.gear-updates.iterations-per-epoch", "1",
     ]
     data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache")]
     ns("ns-train", "gear-nerf-small", *common, "--timestamp", "first", "--max-num-iterations", "20", *data, cwd=root)

@@ -1,13 +1,10 @@
-"""Ray batches with SAM encoder features for L_SAM (Eq 9), drawn by ray importance (ISG, `importance`).
+"""Ray batches with SAM encoder features for L_SAM (Eq 9).
 
 nerfstudio's VanillaDataManager, plus `batch["sam_features"]` (num_rays, C): the cached SAM embedding
 of each ray's image, sampled bilinearly at the ray's pixel centre. The pipeline hands over its SAM backend
 (`attach_sam`); its encoder then runs once per image (`SamFeatureCache`); batches read only the cells they
 need from disk, so RAM stays bounded however long the video is, and image-subset sampling
 (train_num_images_to_sample_from) works unchanged.
-
-Training pixels are drawn with probability proportional to their ISG weight (`importance`), when the dataparser
-names each image's camera (``metadata["camera_ids"]``, as the multi-view video parsers do); otherwise uniformly.
 """
 
 from __future__ import annotations
@@ -21,10 +18,6 @@ from torch import Tensor
 
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
-from nerfstudio.data.datasets.base_dataset import InputDataset
-from nerfstudio.data.pixel_samplers import PixelSamplerConfig
-
-from gear_nerfstudio.data.importance import IsgDataset, IsgPixelSampler, IsgPixelSamplerConfig
 
 from gear_nerfstudio.sam.interface import Embedding, SamBackend
 from gear_nerfstudio.sam.feature_cache import SamFeatureCache
@@ -39,19 +32,6 @@ class GearDataManagerConfig(VanillaDataManagerConfig):
     """Where encoder features are cached; default ~/.cache/gear-nerfstudio/sam (or $XDG_CACHE_HOME)."""
     use_sam_features: bool = True
     """Add SAM features to ray batches (Eq 9). False: the paper's "w/o embedding" ablation, no encoder run."""
-    pixel_sampler: PixelSamplerConfig = field(default_factory=IsgPixelSamplerConfig)
-    """Draws the pixels of a batch by their ISG weights where the images have them, else uniformly."""
-    isg_gamma: Optional[float] = 2e-2
-    """gamma of the Geman-McClure function of the ISG weights (Neural 3D Video's and K-Planes' 2e-2); None: draw
-    training pixels uniformly (nerfstudio's default)."""
-    isg_start_step: int = 0
-    """Training pixels are drawn uniformly before this step, by ISG weight from it on: the static scene's geometry
-    first (Neural 3D Video trains on its keyframes before it samples by ISG). Each preset starts at 1/4 of its
-    iterations."""
-    isg_floor: float = 0.1
-    """alpha, the least ISG weight of a pixel (Neural 3D Video's floor of its IST weights)."""
-    isg_median_frames: int = 64
-    """Frames of each camera (evenly spaced over the window) whose per-pixel median is its static background."""
 
 
 class GearDataManager(VanillaDataManager):
@@ -60,19 +40,6 @@ class GearDataManager(VanillaDataManager):
     config: GearDataManagerConfig
     feature_cache: Optional[SamFeatureCache] = None
     eval_feature_cache: Optional[SamFeatureCache] = None
-
-    def create_train_dataset(self) -> InputDataset:
-        """The training images, with ISG weight maps unless ``isg_gamma`` is None or the images' cameras are
-        unknown."""
-        if self.config.isg_gamma is None or "camera_ids" not in self.train_dataparser_outputs.metadata:
-            return super().create_train_dataset()
-        return IsgDataset(
-            dataparser_outputs=self.train_dataparser_outputs,
-            scale_factor=self.config.camera_res_scale_factor,
-            gamma=self.config.isg_gamma,
-            floor=self.config.isg_floor,
-            max_frames=self.config.isg_median_frames,
-        )
 
     def attach_sam(self, backend: SamBackend) -> None:
         """Feature caches of the training and evaluation images for a SAM backend; the images not yet cached
@@ -104,10 +71,7 @@ class GearDataManager(VanillaDataManager):
         return self._attached(cache).features_at(indices[:, 0], pixels, device=self.device)
 
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
-        """A training ray batch, drawn by ISG weight from ``isg_start_step`` on, with `sam_features` unless
-        `use_sam_features` is off."""
-        if isinstance(self.train_pixel_sampler, IsgPixelSampler):
-            self.train_pixel_sampler.use_weights = step >= self.config.isg_start_step
+        """A training ray batch, with `sam_features` unless `use_sam_features` is off."""
         ray_bundle, batch = super().next_train(step)
         if self.config.use_sam_features:
             batch["sam_features"] = self._sam_features(self.feature_cache, batch["indices"])
