@@ -10,6 +10,9 @@ images' PSNR against the held-out frames, and training rays per second (nerfstud
 Each render is timed ``--repeats`` times (median) on ``--frames`` held-out frames evenly spaced over the video; the
 training rate is the median of ``--train-windows`` windows of 10 iterations after 5 warm-up iterations, on a copy of
 the run's model (the run folder is not written to).
+
+With ``--samples 32,16,12 ...`` it measures instead the model's render at other render sample counts
+(``--pipeline.model.render-num-proposal-samples 32 16 --pipeline.model.render-num-samples 12``) against the run's own.
 """
 
 from __future__ import annotations
@@ -83,6 +86,45 @@ def render_rows(config: Path, frames: int, repeats: int, images: Optional[Path])
     return {name: float(np.mean(values)) for name, values in rows.items()}
 
 
+def sample_rows(config: Path, frames: int, repeats: int, variants: List[str]) -> List[str]:
+    """Table rows of the model's render path at other render sample counts (``render_num_proposal_samples`` and
+    ``render_num_samples``, given as "64,32,24": the proposal iterations' counts, then n) against the run's own:
+    seconds per frame, pixels per second, PSNR against the held-out frames and against the render at the run's
+    counts, averaged over the held-out frames."""
+    _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
+    indices = np.linspace(0, len(dataset) - 1, frames).round().astype(int)
+    cameras = [dataset.cameras[int(i) : int(i) + 1].to(model.device) for i in indices]
+    bundles = [camera.generate_rays(camera_indices=0, keep_shape=True) for camera in cameras]
+    truths = [dataset.get_image_float32(int(i))[..., :3].to(model.device) for i in indices]
+    own = ",".join(str(n) for n in (*model.config.num_proposal_samples, model.config.num_samples))
+    with torch.no_grad():
+        model.get_outputs_for_camera_ray_bundle(bundles[0])  # warm-up: the first render of a process is slower
+    references, rows = None, []
+    for variant in [own, *variants]:
+        *proposal, n = (int(value) for value in variant.split(","))
+        model.config.render_num_proposal_samples, model.config.render_num_samples = tuple(proposal) or None, n
+        seconds, psnrs = [], []
+        with torch.no_grad():
+            renders = []
+            for rays, truth in zip(bundles, truths):
+                time_s, rendered = timed(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], repeats)
+                seconds.append(time_s)
+                psnrs.append(float(psnr(rendered, truth)))
+                renders.append(rendered)
+        references = references or renders
+        differences = [float(psnr(rendered, reference)) for rendered, reference in zip(renders, references)]
+        pixels = bundles[0].shape.numel()
+        label = f"{variant} (the run's)" if variant == own else variant
+        rows.append(
+            f"| {config.parent} | {label} | "
+            f"{np.mean(seconds):.2f} | {pixels / np.mean(seconds):,.0f} | {np.mean(psnrs):.3f} | "
+            f"{np.mean(differences):.1f} |"
+        )
+        print(rows[-1], flush=True)
+    return rows
+
+
 def training_rate(config: Path, windows: int) -> float:
     """Median training rays per second of ``Trainer.train_iteration`` on the run's checkpoint."""
     trainer_config, _, _, _ = eval_setup(config, test_mode="test")
@@ -114,19 +156,27 @@ def main() -> None:
     parser.add_argument("--train-windows", type=int, default=5, help="windows of 10 training iterations (median)")
     parser.add_argument("--output", type=Path, default=None, help="append the table to this Markdown file")
     parser.add_argument("--images", type=Path, default=None, help="save each run's first frame side by side here")
+    parser.add_argument(
+        "--samples", nargs="+", default=None, metavar="P1,P2,N",
+        help="instead: the render at these render sample counts (proposal iterations' counts, then n) against the "
+        "run's own",
+    )  # fmt: skip
     args = parser.parse_args()
+    if args.samples is not None:
+        header = (
+            "| run | render samples: proposal iterations, n | render s / frame | pixels / s | PSNR (dB) | "
+            "PSNR against the run's own counts (dB) |"
+        )
+        lines = [machine_line(), "", header, "|" + " --- |" * (header.count("|") - 1)]
+        for config in args.configs:
+            lines += sample_rows(config, args.frames, args.repeats, args.samples)
+        write(lines, args.output)
+        return
     header = (
         "| run | pixels | render s / frame: generic -> model (speed-up) | pixels / s (model) | samples / ray | "
         "PSNR generic / model (dB) | model vs generic: max abs diff, PSNR (dB) | training rays / s |"
     )
-    device = f"cuda {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "cpu"
-    lines = [
-        f"Machine: {platform.machine()} {platform.processor() or ''}, {torch.get_num_threads()} torch threads, "
-        f"torch {torch.__version__}, device {device}.",
-        "",
-        header,
-        "|" + " --- |" * (header.count("|") - 1),
-    ]
+    lines = [machine_line(), "", header, "|" + " --- |" * (header.count("|") - 1)]
     for config in args.configs:
         row = render_rows(config, args.frames, args.repeats, args.images)
         rate = training_rate(config, args.train_windows)
@@ -139,10 +189,24 @@ def main() -> None:
             f"{row['max_difference']:.2g}, {row['difference_psnr']:.1f} | {rate:,.0f} |"
         )
         print(lines[-1], flush=True)
+    write(lines, args.output)
+
+
+def machine_line() -> str:
+    """The machine, torch and device, for the tables."""
+    device = f"cuda {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "cpu"
+    return (
+        f"Machine: {platform.machine()} {platform.processor() or ''}, {torch.get_num_threads()} torch threads, "
+        f"torch {torch.__version__}, device {device}."
+    )
+
+
+def write(lines: List[str], output: Optional[Path]) -> None:
+    """Print the table and append it to ``output`` (Markdown) when given."""
     text = "\n".join(lines) + "\n"
     print(text)
-    if args.output is not None:
-        with args.output.open("a") as handle:
+    if output is not None:
+        with output.open("a") as handle:
             handle.write(text + "\n")
 
 

@@ -10,6 +10,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.model_components.scene_colliders import AABBBoxCollider, NearFarCollider
 
+from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.model.gear_model import GearNeRFModelConfig, lpips_weights_path
 
 OUTPUT_KEYS = {"rgb", "depth", "accumulation", "sam", "gear_level", "gear", "num_samples"}
@@ -324,3 +325,23 @@ def test_full_image_render_path_gives_the_forward_pass_outputs_asked_for():
     for name in ("rgb", "sam"):  # the samples below the weight 1e-5 left out: at most 96 of them per ray
         assert torch.allclose(asked[name], forward[name], atol=1e-3), (name, (asked[name] - forward[name]).abs().max())
     assert torch.equal(rendered["rgb"], asked["rgb"])
+
+
+@pytest.mark.parametrize("base_sampler", ["uniform", "proposal"])
+def test_render_sample_counts_apply_to_full_image_renders_only(base_sampler):
+    """``render_num_samples`` (and ``render_num_proposal_samples``) set n in full-image renders; training samples
+    and the forward pass keep the model's counts; a count per proposal iteration is checked at setup."""
+    proposal = base_sampler == "proposal"
+    counts = {"num_proposal_samples": (16, 8), "render_num_proposal_samples": (8, 4)} if proposal else {}
+    model = make_model(base_sampler=base_sampler, render_num_samples=5, **counts)
+    model.eval()
+    rays = make_rays(40)
+    with model.rendering("num_samples"):
+        rendered = model.get_outputs_for_camera_ray_bundle(rays)
+    assert torch.equal(rendered["num_samples"], torch.full((40, 1), 5.0))  # every sample at gear 1: not split
+    with torch.no_grad():
+        assert torch.equal(model(rays)["num_samples"], torch.full((40, 1), 12.0))
+    if proposal:
+        assert model.base_sampler.num_proposal_samples_per_ray == (16, 8)
+        with pytest.raises(InputError, match="render-num-proposal-samples has 1 values but the model has 2"):
+            make_model(base_sampler="proposal", num_proposal_samples=(16, 8), render_num_proposal_samples=(8,))

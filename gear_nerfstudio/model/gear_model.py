@@ -42,6 +42,7 @@ from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gear_nerfstudio import distributed
+from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.fields.gear_field import GearField, GearFieldHeadNames, sample_points
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
 from gear_nerfstudio.model.image_render import render_image
@@ -154,6 +155,12 @@ class GearNeRFModelConfig(ModelConfig):
     render_outputs: Tuple[str, ...] = ("rgb", "depth", "accumulation", "gear")
     """Outputs of full-image renders (viewer, ns-render, ns-eval); add "sam", "gear_level" or "num_samples" to
     compute those as well (the SAM feature map costs an MLP per sample and 256 channels per pixel)."""
+    render_num_samples: Optional[int] = None
+    """n at full-image renders (viewer, ns-render, ns-eval, the gear updates' views, tracking); None: num_samples.
+    Fewer is faster at a small change of the image (`benchmarks/results/render_speed.md`)."""
+    render_num_proposal_samples: Optional[Tuple[int, ...]] = None
+    """Samples of each proposal iteration at full-image renders (proposal base sampler); None:
+    num_proposal_samples."""
     render_chunk_samples: Optional[int] = None
     """Samples evaluated at once in full-image renders; a chunk takes as many rays as fit (the memory bound). None:
     2^15 on the CPU (the fastest of 2^13-2^17 on the real capture, `benchmarks/results/render_speed.md`), 2^19 on
@@ -246,6 +253,12 @@ class GearNeRFModel(Model):
         )
 
         self.proposal_networks = torch.nn.ModuleList()
+        render_proposal = config.render_num_proposal_samples
+        if render_proposal is not None and len(render_proposal) != len(config.num_proposal_samples):
+            raise InputError(
+                f"--pipeline.model.render-num-proposal-samples has {len(render_proposal)} values but the model has "
+                f"{len(config.num_proposal_samples)} proposal iterations (--pipeline.model.num-proposal-samples)"
+            )
         if config.base_sampler == "proposal":
             time_resolution = config.proposal_time_resolution or max(1, self.num_frames // 2)
             for i in range(len(config.num_proposal_samples)):
@@ -423,6 +436,28 @@ class GearNeRFModel(Model):
             yield
         finally:
             self.extra_outputs = before
+
+    @contextlib.contextmanager
+    def render_sampling(self) -> Iterator[int]:
+        """Inside, the base sampler draws n = ``render_num_samples`` per ray (and ``render_num_proposal_samples``)
+        where they are set; yields n."""
+        sampler, config = self.base_sampler, self.config
+        if isinstance(sampler, ProposalNetworkSampler):
+            counts = {
+                "num_nerf_samples_per_ray": config.render_num_samples,
+                "num_proposal_samples_per_ray": config.render_num_proposal_samples,
+            }
+        else:
+            counts = {"num_samples": config.render_num_samples}
+        before = {name: getattr(sampler, name) for name in counts}
+        for name, value in counts.items():
+            if value is not None:
+                setattr(sampler, name, value)
+        try:
+            yield config.render_num_samples or config.num_samples
+        finally:
+            for name, value in before.items():
+                setattr(sampler, name, value)
 
     @torch.no_grad()
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:

@@ -4,6 +4,8 @@
 - Colour and SAM embedding are computed only for samples whose weight w_i (Eq 1) reaches ``VISIBLE_WEIGHT``, and
   for each ray's last sample: what lies behind an opaque surface costs its density only.
 - Only the outputs asked for are computed (``render_outputs`` of the model's config, plus ``extra``).
+- The base sampler draws the model's render sample counts (``render_num_samples``, ``render_num_proposal_samples``)
+  where they are set.
 - Rays go in chunks of as many rays as ``render_chunk_samples`` field samples allow, judged by the samples per ray
   of the previous chunk; results are written into the image as they come. A chunk reads two counts on the host: the
   split sampler's and the number of visible samples.
@@ -82,18 +84,19 @@ def render_image(model: "GearNeRFModel", bundle: RayBundle, extra: Collection[st
     bundle's device."""
     names = set(model.config.render_outputs) | set(extra)
     rays = bundle.flatten()
-    per_ray = float(model.config.num_samples)
     chunk_samples = model.config.render_chunk_samples or (1 << 15 if model.device.type == "cpu" else 1 << 19)
     images: Dict[str, Tensor] = {}
     start = 0
-    while start < len(rays):
-        count = max(1, int(chunk_samples / max(per_ray, model.config.num_samples / 4)))
-        chunk = rays[start : start + count].to(model.device)
-        outputs, evaluated = render_rays(model, chunk, names)
-        per_ray = evaluated / len(chunk)
-        for name, value in outputs.items():
-            if name not in images:
-                images[name] = value.new_empty((len(rays), value.shape[-1]), device=bundle.origins.device)
-            images[name][start : start + len(chunk)] = value
-        start += len(chunk)
+    with model.render_sampling() as num_samples:
+        per_ray = float(num_samples)
+        while start < len(rays):
+            count = max(1, int(chunk_samples / max(per_ray, num_samples / 4)))
+            chunk = rays[start : start + count].to(model.device)
+            outputs, evaluated = render_rays(model, chunk, names)
+            per_ray = evaluated / len(chunk)
+            for name, value in outputs.items():
+                if name not in images:
+                    images[name] = value.new_empty((len(rays), value.shape[-1]), device=bundle.origins.device)
+                images[name][start : start + len(chunk)] = value
+            start += len(chunk)
     return {name: image.view(*bundle.shape, -1) for name, image in images.items()}
