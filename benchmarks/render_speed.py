@@ -98,20 +98,17 @@ def sample_rows(config: Path, frames: int, repeats: int, variants: List[str]) ->
     bundles = [camera.generate_rays(camera_indices=0, keep_shape=True) for camera in cameras]
     truths = [dataset.get_image_float32(int(i))[..., :3].to(model.device) for i in indices]
     own = ",".join(str(n) for n in (*model.config.num_proposal_samples, model.config.num_samples))
-    with torch.no_grad():
-        model.get_outputs_for_camera_ray_bundle(bundles[0])  # warm-up: the first render of a process is slower
+    model.get_outputs_for_camera_ray_bundle(bundles[0])  # warm-up: the first render of a process is slower
     references, rows = None, []
     for variant in [own, *variants]:
         *proposal, n = (int(value) for value in variant.split(","))
         model.config.render_num_proposal_samples, model.config.render_num_samples = tuple(proposal) or None, n
-        seconds, psnrs = [], []
-        with torch.no_grad():
-            renders = []
-            for rays, truth in zip(bundles, truths):
-                time_s, rendered = timed(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], repeats)
-                seconds.append(time_s)
-                psnrs.append(float(psnr(rendered, truth)))
-                renders.append(rendered)
+        seconds, psnrs, renders = [], [], []
+        for rays, truth in zip(bundles, truths):
+            time_s, rendered = timed(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], repeats)
+            seconds.append(time_s)
+            psnrs.append(float(psnr(rendered, truth)))
+            renders.append(rendered)
         references = references or renders
         differences = [float(psnr(rendered, reference)) for rendered, reference in zip(renders, references)]
         pixels = bundles[0].shape.numel()
