@@ -7,7 +7,7 @@
 #                                      call carries, with the video), and the real capture into .device_site/real
 #   bash benchmarks/gpu_env.sh setup   there (carry .device_site): unpack into /tmp/site, install this checkout
 #                                      into it (so that nerfstudio finds the plugin's entry points), and put the
-#                                      capture where the benchmarks look (../shared/data/real); then
+#                                      capture, if packed, where the benchmarks look (../shared/data/real); then
 #                                      `export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH`
 #
 # The packages are those nerfstudio 1.1.5 imports when it trains and evaluates gear-nerf, at the versions of
@@ -32,7 +32,7 @@ case "${1:-}" in
   setup)
     python3 -c "import tarfile; tarfile.open('.device_site/site.tar.xz').extractall('/tmp', filter='data')"
     python3 -m pip install -q --no-deps --no-build-isolation --no-index --no-compile --target /tmp/site .
-    mkdir -p ../shared/data/real && cp -r .device_site/real/* ../shared/data/real/
+    if [ -d .device_site/real ]; then mkdir -p ../shared/data/real && cp -r .device_site/real/* ../shared/data/real/; fi
     ;;
   *)
     echo "usage: bash benchmarks/gpu_env.sh pack|setup" >&2

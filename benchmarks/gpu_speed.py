@@ -20,6 +20,13 @@ Per method:
    (``torch.cuda.max_memory_allocated``) over these iterations.
 5. Render: ``--renders`` full frames of the held-out camera (``model.get_outputs_for_camera``, the viewer's and
    ``ns-render``'s path) after one warm-up render, with their peak memory.
+6. Variants on the same trained model (issue 25), each against the row above: renders at other chunk sizes
+   (``--render-chunks``, field samples per chunk) and render sample counts (``--render-samples 32,16,12``: the
+   proposal iterations' counts, then n; at chunks of ``--samples-chunk``), with each render's PSNR against the
+   row's render and its peak memory; training windows at other rays per batch (``--batches``), and with and
+   without TF32 matrix products in turn (``--tf32``); and a ``torch.profiler`` pass over ``--profile`` iterations
+   (GPU busy time, host time and kernel launches per iteration; the table of kernels is written beside the
+   results).
 
     python benchmarks/gpu_speed.py --device cuda --scene outputs/gpu_speed/scene --output outputs/gpu_speed \\
         --results benchmarks/results
@@ -38,7 +45,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Dict, List
+from typing import Any, Callable, Dict, List, Tuple
 
 import torch
 from torch import Tensor
@@ -49,6 +56,7 @@ from nerfstudio.engine.trainer import Trainer
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_baseline
+from gear_nerfstudio.model.gear_model import psnr
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 METHODS = {"gear-nerf": gear_nerf, "gear-nerf-one-gear": gear_nerf, "gear-nerf-baseline": gear_nerf_baseline}
@@ -136,17 +144,95 @@ class Run:
                 counts[f"{Path(warning.filename).name}:{warning.lineno}"] += 1
         return counts
 
-    def render(self, count: int) -> List[float]:
-        """Seconds per full-frame render of the held-out camera (after one warm-up render)."""
+    def windows(self, count: int, length: int) -> List[float]:
+        """Seconds per iteration of ``count`` windows of ``length`` iterations."""
+
+        def window() -> None:
+            for _ in range(length):
+                self.iteration()
+
+        return [self.timed(window) / length for _ in range(count)]
+
+    def render(self, count: int) -> Tuple[List[float], Tensor]:
+        """Seconds per full-frame render of the held-out camera (after one warm-up render), and the image."""
         camera = self.trainer.pipeline.datamanager.eval_dataset.cameras[0:1].to(self.model.device)
         self.model.eval()
         try:
             self.model.get_outputs_for_camera(camera)
             if self.cuda:
                 torch.cuda.reset_peak_memory_stats()
-            return [self.timed(lambda: self.model.get_outputs_for_camera(camera)) for _ in range(count)]
+            image: Dict[str, Tensor] = {}
+            times = [self.timed(lambda: image.update(self.model.get_outputs_for_camera(camera))) for _ in range(count)]
+            return times, image["rgb"]
         finally:
             self.model.train()
+
+    def profile(self, iterations: int) -> Tuple[float, float, float, str]:
+        """Per iteration over ``iterations`` profiled iterations: GPU busy milliseconds (the kernels' own time),
+        host milliseconds in operators (the profiler's own overhead included) and kernel launches; and the
+        profiler's table of the operators and kernels by their own GPU time."""
+        activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+        with torch.profiler.profile(activities=activities) as profiler:
+            for _ in range(iterations):
+                self.iteration()
+            self.synchronize()
+        events = profiler.key_averages()
+        kernels = [event for event in events if event.device_type == torch.autograd.DeviceType.CUDA]
+        busy_ms = sum(event.self_device_time_total for event in kernels) / 1000 / iterations
+        host_ms = sum(event.self_cpu_time_total for event in events) / 1000 / iterations
+        launches = sum(event.count for event in events if "LaunchKernel" in event.key) / iterations
+        return busy_ms, host_ms, launches, events.table(sort_by="self_device_time_total", row_limit=25)
+
+
+def variants(run: Run, args: argparse.Namespace, reference: Tensor) -> List[Dict[str, Any]]:
+    """The variants of step 6 on ``run``'s trained model, each restored afterwards: the renders first, while the
+    model is the one that rendered ``reference``."""
+    rows: List[Dict[str, Any]] = []
+    config = run.model.config
+
+    def render(variant: str) -> None:
+        times, image = run.render(args.renders)
+        memory = torch.cuda.max_memory_allocated() if run.cuda else None
+        rows.append({"variant": variant, "renders": times, "image": image, "memory": memory})
+
+    for chunk in args.render_chunks:
+        config.render_chunk_samples = chunk
+        render(f"render, chunks of {chunk:,} samples")
+    config.render_chunk_samples = args.samples_chunk
+    for counts in args.render_samples:
+        *proposal, config.render_num_samples = (int(value) for value in counts.split(","))
+        config.render_num_proposal_samples = tuple(proposal) or None
+        chunk = f", chunks of {args.samples_chunk:,} samples" if args.samples_chunk else ""
+        render(f"render, samples {counts}{chunk}")
+    config.render_num_samples = config.render_num_proposal_samples = config.render_chunk_samples = None
+    for row in rows:
+        if "image" in row:
+            row["psnr"] = float(psnr(row.pop("image"), reference))
+    sampler = run.trainer.pipeline.datamanager.train_pixel_sampler
+    default_rays = sampler.num_rays_per_batch
+    for rays in args.batches:
+        sampler.num_rays_per_batch = rays
+        run.windows(1, args.window)  # warm-up at the new size
+        rows.append({"variant": f"training, {rays} rays / batch", "rays": rays,
+                     "windows": run.windows(args.windows // 2, args.window)})  # fmt: skip
+    sampler.num_rays_per_batch = default_rays
+    if args.tf32:  # windows with and without TF32 in turn, so that both see the same stretch of training
+        timings: Dict[bool, List[float]] = {False: [], True: []}
+        default_tf32 = torch.backends.cuda.matmul.allow_tf32
+        for _ in range(args.windows // 2):
+            for tf32 in (False, True):
+                torch.backends.cuda.matmul.allow_tf32 = tf32
+                timings[tf32] += run.windows(1, args.window)
+        torch.backends.cuda.matmul.allow_tf32 = default_tf32
+        for tf32, label in ((False, "float32"), (True, "TF32")):
+            rows.append({"variant": f"training, {default_rays} rays / batch, {label} (in turn)", "rays": default_rays,
+                         "windows": timings[tf32]})  # fmt: skip
+    if args.profile and run.cuda:
+        busy_ms, host_ms, launches, table = run.profile(args.profile)
+        rows.append({"variant": "training, profiled", "busy_ms": busy_ms, "host_ms": host_ms, "launches": launches})
+        args.output.mkdir(parents=True, exist_ok=True)
+        (args.output / f"gpu_profile_{run.method}.txt").write_text(table)
+    return rows
 
 
 def measure(method: str, args: argparse.Namespace) -> Dict[str, Any]:
@@ -160,14 +246,10 @@ def measure(method: str, args: argparse.Namespace) -> Dict[str, Any]:
     if run.cuda:
         torch.cuda.reset_peak_memory_stats()
     run.samples_per_ray.clear()
-    def window() -> None:
-        for _ in range(args.window):
-            run.iteration()
-
-    windows = [run.timed(window) / args.window for _ in range(args.windows)]
+    windows = run.windows(args.windows, args.window)
     train_memory = torch.cuda.max_memory_allocated() if run.cuda else None
     samples_per_ray = float(torch.stack(run.samples_per_ray).mean())
-    renders = run.render(args.renders)
+    renders, image = run.render(args.renders)
     render_memory = torch.cuda.max_memory_allocated() if run.cuda else None
     datamanager = run.trainer.pipeline.datamanager
     camera = datamanager.eval_dataset.cameras
@@ -186,6 +268,7 @@ def measure(method: str, args: argparse.Namespace) -> Dict[str, Any]:
         "syncs": syncs,
         "sync_iterations": args.sync_iterations,
         "parameters": sum(p.numel() for p in run.model.parameters()),
+        "variants": variants(run, args, image),
     }
     del run
     if args.device == "cuda":
@@ -236,6 +319,28 @@ def markdown(results: List[Dict[str, Any]], args: argparse.Namespace, command: s
         )
     width, height = results[0]["render_size"]
     lines += ["", f"Render: one full {width} x {height} frame, median of {args.renders}.", ""]
+    if any(r["variants"] for r in results):
+        lines += [
+            "Variants on the same trained model (training: median of the windows; renders: median, and PSNR against "
+            "the render of the row above):",
+            "",
+            "| method | variant | iteration ms: median (range) or render ms | rays / s or FPS | PSNR vs row above (dB) "
+            "| peak render GiB | profiled: GPU busy ms, host ms, kernel launches / iteration |",
+            "| --- | --- | --- | --- | --- | --- | --- |",
+        ]
+        for r in results:
+            for v in r["variants"]:
+                if "windows" in v:
+                    ms = [1000 * w for w in v["windows"]]
+                    median = statistics.median(ms)
+                    cells = f"{median:.1f} ({min(ms):.1f}-{max(ms):.1f}) | {v['rays'] / median * 1000:,.0f} | | | "
+                elif "renders" in v:
+                    ms = 1000 * statistics.median(v["renders"])
+                    cells = f"{ms:.0f} | {1000 / ms:.2f} | {v['psnr']:.1f} | {gib(v['memory'])} | "
+                else:
+                    cells = f" | | | | {v['busy_ms']:.1f}, {v['host_ms']:.1f}, {v['launches']:.0f}"
+                lines.append(f"| {r['method']} | {v['variant']} | {cells} |".replace("|  |", "| |"))
+        lines.append("")
     for r in results:
         if r["updates"]:
             lines.append(
@@ -287,6 +392,12 @@ def main() -> None:
     parser.add_argument("--windows", type=int, default=20)
     parser.add_argument("--renders", type=int, default=3)
     parser.add_argument("--seed", type=int, default=42)
+    parser.add_argument("--batches", type=int, nargs="*", default=[], help="also train at these rays per batch")
+    parser.add_argument("--tf32", action="store_true", help="also train with and without TF32 products in turn")
+    parser.add_argument("--render-chunks", type=int, nargs="*", default=[], help="also render at these chunk sizes")
+    parser.add_argument("--render-samples", nargs="*", default=[], metavar="P1,P2,N", help="also render at these counts")
+    parser.add_argument("--samples-chunk", type=int, default=None, help="chunk size of the --render-samples renders")
+    parser.add_argument("--profile", type=int, default=0, help="profile this many training iterations (CUDA)")
     parser.add_argument("--output", type=Path, default=Path("outputs/gpu_speed"))
     parser.add_argument("--results", type=Path, default=None, help="also write gpu_speed.md here")
     args = parser.parse_args()

@@ -84,7 +84,7 @@ def render_image(model: "GearNeRFModel", bundle: RayBundle, extra: Collection[st
     bundle's device."""
     names = set(model.config.render_outputs) | set(extra)
     rays = bundle.flatten()
-    chunk_samples = model.config.render_chunk_samples or (1 << 15 if model.device.type == "cpu" else 1 << 19)
+    chunk_samples = model.config.render_chunk_samples or (1 << 15 if model.device.type == "cpu" else 1 << 21)
     images: Dict[str, Tensor] = {}
     start = 0
     with model.render_sampling() as num_samples:
