@@ -123,6 +123,8 @@ METHODS: Dict[str, str] = {
     "proposal-warmup": "Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
     "gear-rows-1": "Gear-NeRF with a gear function constant in time (k' of 1 row)",
     "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
+    "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
+    "kplanes-resolutions-64-128": "plain K-Planes (N_gear = 1) with L_SAM, planes of 64 and 128 cells",
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -157,6 +159,8 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "proposal-warmup": ["--pipeline.model.proposal-warmup", str(max(1, iterations // 6))],
         "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
         "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
+        "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
+        "kplanes-resolutions-64-128": [*single, "--pipeline.model.resolutions", "64", "128"],
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")

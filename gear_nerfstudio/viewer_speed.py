@@ -8,9 +8,10 @@ Then:
 
 - still: 'Max res' = sqrt(p x ``STILL_SECONDS`` x 16 / 9), the largest 16:9 view that renders in ``STILL_SECONDS``,
   rounded down to a multiple of 64 within [128, 2048];
-- moving: min(30, p / ``MOVING_PIXELS``) frames per second. nerfstudio sizes a frame while the camera moves as its
-  measured rays per second over that rate, so the frames have at least ``MOVING_PIXELS`` pixels, and a moved camera
-  is redrawn within 1 / rate seconds (a quarter of a second on a CPU core).
+- moving: p / ``MOVING_PIXELS`` frames per second, within [``FEWEST_FRAMES_PER_SECOND``, 30]. nerfstudio sizes a
+  frame while the camera moves as its measured rays per second over that rate, so a frame has ``MOVING_PIXELS``
+  pixels where the speed allows, fewer on a slower machine, and renders in at most 1 / ``FEWEST_FRAMES_PER_SECOND``
+  seconds: a moved camera is redrawn within about a second (issue 25).
 """
 
 from __future__ import annotations
@@ -35,9 +36,12 @@ PROBE_PIXELS = 4096
 STILL_SECONDS = 2.0
 """Render time of a still view at 'Max res'."""
 MOVING_PIXELS = 6000
-"""Fewest pixels of a frame while the camera moves (about 103 x 58 at 16:9)."""
+"""Pixels of a frame while the camera moves, where the speed allows (about 103 x 58 at 16:9)."""
 MOST_FRAMES_PER_SECOND = 30.0
 """nerfstudio's rate while the camera moves."""
+FEWEST_FRAMES_PER_SECOND = 2.0
+"""Slowest rate while the camera moves: a frame renders in half a second, which leaves the other half of a second
+for the viewer's round trip to the browser."""
 
 
 def still_resolution(pixels_per_second: float) -> int:
@@ -47,8 +51,9 @@ def still_resolution(pixels_per_second: float) -> int:
 
 
 def moving_rate(pixels_per_second: float) -> float:
-    """Frames per second while the camera moves: frames of at least ``MOVING_PIXELS`` pixels."""
-    return min(MOST_FRAMES_PER_SECOND, pixels_per_second / MOVING_PIXELS)
+    """Frames per second while the camera moves: frames of ``MOVING_PIXELS`` pixels, unless that takes longer than
+    1 / ``FEWEST_FRAMES_PER_SECOND`` seconds."""
+    return min(MOST_FRAMES_PER_SECOND, max(FEWEST_FRAMES_PER_SECOND, pixels_per_second / MOVING_PIXELS))
 
 
 @torch.no_grad()
