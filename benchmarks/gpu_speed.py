@@ -206,8 +206,7 @@ def variants(run: Run, args: argparse.Namespace, reference: Tensor) -> List[Dict
         render(f"render, samples {counts}{chunk}")
     config.render_num_samples = config.render_num_proposal_samples = config.render_chunk_samples = None
     for row in rows:
-        if "image" in row:
-            row["psnr"] = float(psnr(row.pop("image"), reference))
+        row["psnr"] = float(psnr(row.pop("image"), reference))
     sampler = run.trainer.pipeline.datamanager.train_pixel_sampler
     default_rays = sampler.num_rays_per_batch
     for rays in args.batches:
@@ -330,16 +329,17 @@ def markdown(results: List[Dict[str, Any]], args: argparse.Namespace, command: s
         ]
         for r in results:
             for v in r["variants"]:
+                cells = [""] * 5
                 if "windows" in v:
                     ms = [1000 * w for w in v["windows"]]
                     median = statistics.median(ms)
-                    cells = f"{median:.1f} ({min(ms):.1f}-{max(ms):.1f}) | {v['rays'] / median * 1000:,.0f} | | | "
+                    cells[:2] = f"{median:.1f} ({min(ms):.1f}-{max(ms):.1f})", f"{v['rays'] / median * 1000:,.0f}"
                 elif "renders" in v:
                     ms = 1000 * statistics.median(v["renders"])
-                    cells = f"{ms:.0f} | {1000 / ms:.2f} | {v['psnr']:.1f} | {gib(v['memory'])} | "
+                    cells[:4] = f"{ms:.0f}", f"{1000 / ms:.2f}", f"{v['psnr']:.1f}", gib(v["memory"])
                 else:
-                    cells = f" | | | | {v['busy_ms']:.1f}, {v['host_ms']:.1f}, {v['launches']:.0f}"
-                lines.append(f"| {r['method']} | {v['variant']} | {cells} |".replace("|  |", "| |"))
+                    cells[4] = f"{v['busy_ms']:.1f}, {v['host_ms']:.1f}, {v['launches']:.0f}"
+                lines.append("| " + " | ".join([r["method"], v["variant"], *cells]) + " |")
         lines.append("")
     for r in results:
         if r["updates"]:
