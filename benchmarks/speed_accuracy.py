@@ -124,7 +124,6 @@ METHODS: Dict[str, str] = {
     "gear-rows-1": "Gear-NeRF with a gear function constant in time (k' of 1 row)",
     "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
     "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
-    "kplanes-resolutions-64-128": "plain K-Planes (N_gear = 1) with L_SAM, planes of 64 and 128 cells",
     "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
 }
 """Method keys and their labels in the tables and the plot."""
@@ -161,7 +160,6 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
         "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
         "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
-        "kplanes-resolutions-64-128": [*single, "--pipeline.model.resolutions", "64", "128"],
         "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
     }
     if method not in overrides:
