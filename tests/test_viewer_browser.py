@@ -366,6 +366,17 @@ def settled_view(driver, box, timeout: float, differs_from=None) -> np.ndarray:
     return wait_for(ready, timeout, "a rendered frame", interval=SETTLED, last=seen)
 
 
+def test_moving_frames_render_in_half_a_second_at_most():
+    """While the camera moves, nerfstudio renders frames of (pixels per second / rate) pixels: 6,000 where the measured
+    speed allows, smaller on a slower machine so that a frame takes at most half a second; never above its 30 frames
+    per second."""
+    assert moving_rate(60_000) == pytest.approx(10.0)
+    assert moving_rate(4_703) == 2.0
+    assert moving_rate(10_000_000) == 30.0
+    for speed in (300, 4_703, 11_999, 12_001, 60_000, 10_000_000):
+        assert 1 / moving_rate(speed) <= 0.5
+
+
 def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, browser, viewer, tmp_path):
     """At the viewer's defaults (its resolutions chosen from the measured render speed, `viewer_speed`): the first
     view shows the scene, the time slider shows the motion, a click selects the object under it, and a moved
