@@ -58,6 +58,7 @@ from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_baseline
 from gear_nerfstudio.model.gear_model import psnr
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
+from render_speed import set_render_counts
 
 METHODS = {"gear-nerf": gear_nerf, "gear-nerf-one-gear": gear_nerf, "gear-nerf-baseline": gear_nerf_baseline}
 """``gear-nerf-one-gear``: the gear-nerf preset with N_gear = 1 (K-Planes with the full time axis and uniform
@@ -200,8 +201,7 @@ def variants(run: Run, args: argparse.Namespace, reference: Tensor) -> List[Dict
         render(f"render, chunks of {chunk:,} samples")
     config.render_chunk_samples = args.samples_chunk
     for counts in args.render_samples:
-        *proposal, config.render_num_samples = (int(value) for value in counts.split(","))
-        config.render_num_proposal_samples = tuple(proposal) or None
+        set_render_counts(config, counts)
         chunk = f", chunks of {args.samples_chunk:,} samples" if args.samples_chunk else ""
         render(f"render, samples {counts}{chunk}")
     config.render_num_samples = config.render_num_proposal_samples = config.render_chunk_samples = None

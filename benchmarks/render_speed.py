@@ -86,6 +86,12 @@ def render_rows(config: Path, frames: int, repeats: int, images: Optional[Path])
     return {name: float(np.mean(values)) for name, values in rows.items()}
 
 
+def set_render_counts(model_config, counts: str) -> None:
+    """Set a model config's render sample counts from "P1,P2,N" (the proposal iterations' counts, then n)."""
+    *proposal, model_config.render_num_samples = (int(value) for value in counts.split(","))
+    model_config.render_num_proposal_samples = tuple(proposal) or None
+
+
 def sample_rows(config: Path, frames: int, repeats: int, variants: List[str]) -> List[str]:
     """Table rows of the model's render path at other render sample counts (``render_num_proposal_samples`` and
     ``render_num_samples``, given as "64,32,24": the proposal iterations' counts, then n) against the run's own:
@@ -101,8 +107,7 @@ def sample_rows(config: Path, frames: int, repeats: int, variants: List[str]) ->
     model.get_outputs_for_camera_ray_bundle(bundles[0])  # warm-up: the first render of a process is slower
     references, rows = None, []
     for variant in [own, *variants]:
-        *proposal, n = (int(value) for value in variant.split(","))
-        model.config.render_num_proposal_samples, model.config.render_num_samples = tuple(proposal) or None, n
+        set_render_counts(model.config, variant)
         seconds, psnrs, renders = [], [], []
         for rays, truth in zip(bundles, truths):
             time_s, rendered = timed(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], repeats)

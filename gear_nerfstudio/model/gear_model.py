@@ -450,10 +450,10 @@ class GearNeRFModel(Model):
             }
         else:
             counts = {"num_samples": config.render_num_samples}
+        counts = {name: value for name, value in counts.items() if value is not None}
         before = {name: getattr(sampler, name) for name in counts}
         for name, value in counts.items():
-            if value is not None:
-                setattr(sampler, name, value)
+            setattr(sampler, name, value)
         try:
             yield config.render_num_samples or config.num_samples
         finally:
