@@ -125,6 +125,9 @@ METHODS: Dict[str, str] = {
     "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
     "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
     "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
+    "accumulation-3e-4": "Gear-NeRF with a transparency loss on the training rays, weight 3e-4",
+    "accumulation-1e-3": "Gear-NeRF with a transparency loss on the training rays, weight 1e-3",
+    "accumulation-1e-2": "Gear-NeRF with a transparency loss on the training rays, weight 1e-2",
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -161,6 +164,8 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
         "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
         "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
+        **{f"accumulation-{weight}": ["--pipeline.model.accumulation-loss-mult", weight]
+           for weight in ("3e-4", "1e-3", "1e-2")},
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")

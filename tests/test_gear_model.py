@@ -117,6 +117,23 @@ def test_sam_loss_only_with_sam_features():
     assert torch.isclose(loss, torch.mean((outputs["sam"] - batch["sam_features"]) ** 2))
 
 
+def test_accumulation_loss_is_the_training_rays_mean_transparency_and_makes_them_opaque():
+    model = make_model(accumulation_loss_mult=0.0).train()
+    assert "accumulation_loss" not in model.get_loss_dict(model(make_rays()), make_batch())
+    model = make_model(accumulation_loss_mult=0.5).train()
+    optimizer = torch.optim.Adam(model.get_param_groups()["fields"], lr=0.05)
+    transparency = []
+    for _ in range(20):
+        outputs = model(make_rays())
+        loss = model.get_loss_dict(outputs, make_batch())["accumulation_loss"]
+        assert torch.isclose(loss, 0.5 * (1 - outputs["accumulation"]).mean())
+        transparency.append(float((1 - outputs["accumulation"]).mean().detach()))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert transparency[-1] < transparency[0] / 2
+
+
 def test_param_groups_separate_the_gear_function():
     model = make_model()
     groups = model.get_param_groups()
