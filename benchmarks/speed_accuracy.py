@@ -103,6 +103,9 @@ REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 Clock = Literal["seconds", "cpu_seconds"]
 """A checkpoint's training time: wall-clock or CPU seconds of the training process."""
 
+ACCUMULATION_WEIGHTS = ("3e-4", "1e-3", "1e-2")
+"""Weights of the transparency loss (``--pipeline.model.accumulation-loss-mult``) measured as methods."""
+
 METHODS: Dict[str, str] = {
     "gear-nerf": "Gear-NeRF",
     "kplanes": "plain K-Planes (N_gear = 1) with L_SAM",
@@ -127,9 +130,8 @@ METHODS: Dict[str, str] = {
     "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
     "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
     "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
-    "accumulation-3e-4": "Gear-NeRF with a transparency loss on the training rays, weight 3e-4",
-    "accumulation-1e-3": "Gear-NeRF with a transparency loss on the training rays, weight 1e-3",
-    "accumulation-1e-2": "Gear-NeRF with a transparency loss on the training rays, weight 1e-2",
+    **{f"accumulation-{weight}": f"Gear-NeRF with a transparency loss on the training rays, weight {weight}"
+       for weight in ACCUMULATION_WEIGHTS},
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -167,7 +169,7 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
         "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
         **{f"accumulation-{weight}": ["--pipeline.model.accumulation-loss-mult", weight]
-           for weight in ("3e-4", "1e-3", "1e-2")},
+           for weight in ACCUMULATION_WEIGHTS},
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
