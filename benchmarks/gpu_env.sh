@@ -31,7 +31,7 @@ case "${1:-}" in
     ;;
   setup)
     python3 -c "import tarfile; tarfile.open('.device_site/site.tar.xz').extractall('/tmp', filter='data')"
-    python3 -m pip install -q --no-deps --no-build-isolation --no-index --no-compile --target /tmp/site .
+    python3 -m pip install -q --upgrade --no-deps --no-build-isolation --no-index --no-compile --target /tmp/site .
     if [ -d .device_site/real ]; then mkdir -p ../shared/data/real && cp -r .device_site/real/* ../shared/data/real/; fi
     ;;
   *)

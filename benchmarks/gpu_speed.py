@@ -26,7 +26,10 @@ Per method:
    row's render and its peak memory; training windows at other rays per batch (``--batches``), and with and
    without TF32 matrix products in turn (``--tf32``); and a ``torch.profiler`` pass over ``--profile`` iterations
    (GPU busy time, host time and kernel launches per iteration; the table of kernels is written beside the
-   results).
+   results). Renders can also be profiled (``--render-profile``, one frame), run under bfloat16 autocast
+   (``--render-bf16``) or with the density functions through ``torch.compile`` (``--render-compile``).
+7. ``--render-stages``: seconds per frame in each stage of the render path (proposal sampler, gear levels, split
+   sampler, field density and its plane features, colour), each stage synchronised at both ends.
 
     python benchmarks/gpu_speed.py --device cuda --scene outputs/gpu_speed/scene --output outputs/gpu_speed \\
         --results benchmarks/results
@@ -36,8 +39,10 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import copy
 import datetime
+import functools
 import platform
 import statistics
 import subprocess
@@ -45,7 +50,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -56,7 +61,8 @@ from nerfstudio.engine.trainer import Trainer
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_baseline
-from gear_nerfstudio.model.gear_model import psnr
+from gear_nerfstudio.model import image_render
+from gear_nerfstudio.model.gear_model import evaluating, psnr
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from render_speed import set_render_counts
 
@@ -168,14 +174,14 @@ class Run:
         finally:
             self.model.train()
 
-    def profile(self, iterations: int) -> Tuple[float, float, float, str]:
-        """Per iteration over ``iterations`` profiled iterations: GPU busy milliseconds (the kernels' own time),
-        host milliseconds in operators (the profiler's own overhead included) and kernel launches; and the
-        profiler's table of the operators and kernels by their own GPU time."""
+    def profile(self, iterations: int, work: Optional[Callable[[], Any]] = None) -> Tuple[float, float, float, str]:
+        """Per call over ``iterations`` profiled calls of ``work`` (a training iteration by default): GPU busy
+        milliseconds (the kernels' own time), host milliseconds in operators (the profiler's own overhead included)
+        and kernel launches; and the profiler's table of the operators and kernels by their own GPU time."""
         activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
         with torch.profiler.profile(activities=activities) as profiler:
             for _ in range(iterations):
-                self.iteration()
+                (work or self.iteration)()
             self.synchronize()
         events = profiler.key_averages()
         kernels = [event for event in events if event.device_type == torch.autograd.DeviceType.CUDA]
@@ -183,6 +189,75 @@ class Run:
         host_ms = sum(event.self_cpu_time_total for event in events) / 1000 / iterations
         launches = sum(event.count for event in events if "LaunchKernel" in event.key) / iterations
         return busy_ms, host_ms, launches, events.table(sort_by="self_device_time_total", row_limit=25)
+
+    def render_profile(self) -> Tuple[float, float, float, str]:
+        """``profile`` of one full-frame render of the held-out camera (after the renders above warmed it up)."""
+        camera = self.trainer.pipeline.datamanager.eval_dataset.cameras[0:1].to(self.model.device)
+        with evaluating(self.model):
+            return self.profile(1, lambda: self.model.get_outputs_for_camera(camera))
+
+
+@contextlib.contextmanager
+def patched(replacements: List[Tuple[Any, str, Callable[[Callable], Callable]]]) -> Iterator[None]:
+    """Inside, ``owner.name`` is ``wrap(owner.name)`` for each (owner, name, wrap); restored afterwards."""
+    saved = [(owner, name, name in vars(owner), getattr(owner, name)) for owner, name, _ in replacements]
+    for owner, name, wrap in replacements:
+        setattr(owner, name, wrap(getattr(owner, name)))
+    try:
+        yield
+    finally:
+        for owner, name, own, original in reversed(saved):
+            if own:
+                setattr(owner, name, original)
+            else:
+                delattr(owner, name)  # an instance attribute over the class's method
+
+
+def render_stages(run: Run, count: int) -> Dict[str, float]:
+    """Seconds per full-frame render spent in each stage of the render path (``image_render.render_rays``), each
+    call synchronised at both ends; nested stages (the proposal networks inside the base sampler, the gear function
+    inside the gear levels, the plane features inside the field's density) are also counted in their parents."""
+    model, field = run.model, run.model.field
+    stages = [
+        (model, "sample_base", "base samples (proposal sampler)"),
+        *[(net, "density_fn", "  proposal networks' density") for net in model.proposal_networks],
+        (field, "gear_levels", "gear levels of the base samples"),
+        (image_render, "split_ray_samples", "split sampler (Sec 4.4)"),
+        (field.gear_function, "forward", "gear function g (Eq 4), every call (the gear levels' included)"),
+        (field, "normalised_density", "field density"),
+        (field, "gear_features", "  plane features f (Eq 3, 6-7)"),
+        (field, "colour", "colour of the visible samples"),
+    ]
+    spent = {label: 0.0 for _, _, label in stages}
+
+    def timer(label: str) -> Callable[[Callable], Callable]:
+        def wrap(function: Callable) -> Callable:
+            def timed_call(*args: Any, **kwargs: Any) -> Any:
+                run.synchronize()
+                start = time.perf_counter()
+                result = function(*args, **kwargs)
+                run.synchronize()
+                spent[label] += time.perf_counter() - start
+                return result
+
+            return timed_call
+
+        return wrap
+
+    with patched([(owner, name, timer(label)) for owner, name, label in stages]):
+        times, _ = run.render(count)  # the warm-up render inside is counted too: count + 1 renders
+    return {"render": statistics.median(times), **{label: seconds / (count + 1) for label, seconds in spent.items()}}
+
+
+@contextlib.contextmanager
+def compiled_densities(model) -> Iterator[None]:
+    """Inside, the proposal networks' ``density_fn`` and the field's ``normalised_density`` run through
+    ``torch.compile`` (dynamic shapes: a render's chunks differ in size)."""
+    compile = functools.partial(torch.compile, dynamic=True)
+    owners = [*model.proposal_networks, model.field]
+    names = ["density_fn"] * len(model.proposal_networks) + ["normalised_density"]
+    with patched([(owner, name, compile) for owner, name in zip(owners, names)]):
+        yield
 
 
 def variants(run: Run, args: argparse.Namespace, reference: Tensor) -> List[Dict[str, Any]]:
@@ -194,8 +269,19 @@ def variants(run: Run, args: argparse.Namespace, reference: Tensor) -> List[Dict
     def render(variant: str) -> None:
         times, image = run.render(args.renders)
         memory = torch.cuda.max_memory_allocated() if run.cuda else None
-        rows.append({"variant": variant, "renders": times, "image": image, "memory": memory})
+        rows.append({"variant": variant, "renders": times, "image": image.float(), "memory": memory})
 
+    if args.render_profile and run.cuda:
+        busy_ms, host_ms, launches, table = run.render_profile()
+        rows.append({"variant": "render, profiled", "busy_ms": busy_ms, "host_ms": host_ms, "launches": launches})
+        args.output.mkdir(parents=True, exist_ok=True)
+        (args.output / f"gpu_render_profile_{run.method}.txt").write_text(table)
+    if args.render_bf16:
+        with torch.autocast(device_type=run.model.device.type, dtype=torch.bfloat16):
+            render("render, bfloat16 autocast")
+    if args.render_compile:
+        with compiled_densities(run.model):
+            render("render, density functions compiled (torch.compile, dynamic shapes; compiled in the warm-up)")
     for chunk in args.render_chunks:
         config.render_chunk_samples = chunk
         render(f"render, chunks of {chunk:,} samples")
@@ -206,7 +292,8 @@ def variants(run: Run, args: argparse.Namespace, reference: Tensor) -> List[Dict
         render(f"render, samples {counts}{chunk}")
     config.render_num_samples = config.render_num_proposal_samples = config.render_chunk_samples = None
     for row in rows:
-        row["psnr"] = float(psnr(row.pop("image"), reference))
+        if "image" in row:
+            row["psnr"] = float(psnr(row.pop("image"), reference))
     sampler = run.trainer.pipeline.datamanager.train_pixel_sampler
     default_rays = sampler.num_rays_per_batch
     for rays in args.batches:
@@ -268,6 +355,7 @@ def measure(method: str, args: argparse.Namespace) -> Dict[str, Any]:
         "sync_iterations": args.sync_iterations,
         "parameters": sum(p.numel() for p in run.model.parameters()),
         "variants": variants(run, args, image),
+        "stages": render_stages(run, args.renders) if args.render_stages else {},
     }
     del run
     if args.device == "cuda":
@@ -342,6 +430,16 @@ def markdown(results: List[Dict[str, Any]], args: argparse.Namespace, command: s
                 lines.append("| " + " | ".join([r["method"], v["variant"], *cells]) + " |")
         lines.append("")
     for r in results:
+        if r["stages"]:
+            lines += [
+                f"Render stages of {r['method']} (seconds per frame, every stage synchronised at both ends, so the "
+                f"render takes {r['stages']['render']:.2f} s here; an indented stage is counted in the one above it "
+                "too):",
+                "",
+                *[f"- {label}: {seconds:.3f}" for label, seconds in r["stages"].items() if label != "render"],
+                "",
+            ]
+    for r in results:
         if r["updates"]:
             lines.append(
                 f"Gear updates of {r['method']} (seconds each; gear shares of the views' visible surface after it):"
@@ -398,6 +496,10 @@ def main() -> None:
     parser.add_argument("--render-samples", nargs="*", default=[], metavar="P1,P2,N", help="also render at these counts")
     parser.add_argument("--samples-chunk", type=int, default=None, help="chunk size of the --render-samples renders")
     parser.add_argument("--profile", type=int, default=0, help="profile this many training iterations (CUDA)")
+    parser.add_argument("--render-profile", action="store_true", help="also profile one render (CUDA)")
+    parser.add_argument("--render-bf16", action="store_true", help="also render under bfloat16 autocast")
+    parser.add_argument("--render-compile", action="store_true", help="also render with compiled density functions")
+    parser.add_argument("--render-stages", action="store_true", help="also time the render path's stages")
     parser.add_argument("--output", type=Path, default=Path("outputs/gpu_speed"))
     parser.add_argument("--results", type=Path, default=None, help="also write gpu_speed.md here")
     args = parser.parse_args()

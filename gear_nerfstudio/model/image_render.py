@@ -58,7 +58,7 @@ def render_rays(model: "GearNeRFModel", rays: RayBundle, names: Collection[str])
     codes = None if field.appearance is None else field.appearance(rays.metadata, len(rays))[split.ray_index[index]]
     directions = split.pack(samples.frustums.directions)[index]
     colours = field.colour(sample_points(positions[index], None, directions, codes), geometry[index])
-    rgb = positions.new_zeros((len(positions), 3)).index_copy(0, index, colours)
+    rgb = colours.new_zeros((len(positions), 3)).index_copy(0, index, colours)
 
     accumulation = model.renderer_accumulation(weights=weights)
     outputs = {
