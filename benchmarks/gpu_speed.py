@@ -215,8 +215,8 @@ def patched(replacements: List[Tuple[Any, str, Callable[[Callable], Callable]]])
 
 def render_stages(run: Run, count: int) -> Dict[str, float]:
     """Seconds per full-frame render spent in each stage of the render path (``image_render.render_rays``), each
-    call synchronised at both ends; nested stages (the proposal networks inside the base sampler, the gear function
-    inside the gear levels, the plane features inside the field's density) are also counted in their parents."""
+    call synchronised at both ends; nested stages (the proposal networks inside the base sampler, the plane features
+    inside the field's density) are also counted in their parents."""
     model, field = run.model, run.model.field
     stages = [
         (model, "sample_base", "base samples (proposal sampler)"),
@@ -253,10 +253,10 @@ def render_stages(run: Run, count: int) -> Dict[str, float]:
 def compiled_densities(model) -> Iterator[None]:
     """Inside, the proposal networks' ``density_fn`` and the field's ``normalised_density`` run through
     ``torch.compile`` (dynamic shapes: a render's chunks differ in size)."""
-    compile = functools.partial(torch.compile, dynamic=True)
+    compiled = functools.partial(torch.compile, dynamic=True)
     owners = [*model.proposal_networks, model.field]
     names = ["density_fn"] * len(model.proposal_networks) + ["normalised_density"]
-    with patched([(owner, name, compile) for owner, name in zip(owners, names)]):
+    with patched([(owner, name, compiled) for owner, name in zip(owners, names)]):
         yield
 
 
