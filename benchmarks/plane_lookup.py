@@ -25,12 +25,10 @@ from gear_nerfstudio.fields.planes import bilinear, space_coords, time_coords
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_small
 
 
-def corner_lookup(planes: Tensor, coords: Tensor) -> Tensor:
-    """The bilinear lookup of ``bilinear`` (corners aligned, border-clamped) on channels-last planes (3, H * W, C),
-    as ``F.embedding_bag`` sums of the four corner rows weighted by their bilinear weights; (3, N, C)."""
-    height_width = planes.shape[1]
-    width = planes.width
-    height = height_width // width
+def corner_lookup(planes: Tensor, width: int, coords: Tensor) -> Tensor:
+    """The bilinear lookup of ``bilinear`` (corners aligned, border-clamped) on channels-last planes (3, H * W, C) of
+    W = ``width``, as ``F.embedding_bag`` sums of the four corner rows weighted by their bilinear weights; (3, N, C)."""
+    height = planes.shape[1] // width
     u = (coords[..., 0].clamp(-1, 1) + 1) * 0.5 * (width - 1)
     v = (coords[..., 1].clamp(-1, 1) + 1) * 0.5 * (height - 1)
     u0 = u.floor().clamp(0, max(width - 2, 0))
@@ -46,11 +44,8 @@ def corner_lookup(planes: Tensor, coords: Tensor) -> Tensor:
 
 
 def channels_last(plane: Tensor) -> Tensor:
-    """(3, C, H, W) as a (3, H * W, C) leaf that remembers W."""
-    flat = plane.detach().permute(0, 2, 3, 1).reshape(plane.shape[0], -1, plane.shape[1]).contiguous()
-    flat.requires_grad_(True)
-    flat.width = plane.shape[-1]
-    return flat
+    """(3, C, H, W) as a (3, H * W, C) leaf."""
+    return plane.detach().permute(0, 2, 3, 1).reshape(plane.shape[0], -1, plane.shape[1]).contiguous().requires_grad_()
 
 
 def median_ms(function: Callable[[], None], repeats: int, device: torch.device) -> float:
@@ -79,15 +74,23 @@ def measure(channels: int, resolutions: Sequence[int], rows: int, samples: int, 
         planes += [torch.rand(3, channels, r, r, device=device), torch.rand(3, channels, rows, r, device=device)]
     planes = [p.requires_grad_(True) for p in planes]
     flat = [channels_last(p) for p in planes]
-    with torch.no_grad():
-        grid = [bilinear(p, coords[i % 2]) for i, p in enumerate(planes)]
-        gathered = [corner_lookup(p, coords[i % 2]) for i, p in enumerate(flat)]
-        difference = max(float((a.transpose(1, 2) - b).abs().max()) for a, b in zip(grid, gathered))
 
-    def run(lookup, tables, backward: bool) -> Callable[[], None]:
+    def gather(i: int, coords: Tensor) -> Tensor:
+        return corner_lookup(flat[i], planes[i].shape[-1], coords)
+
+    def grid(i: int, coords: Tensor) -> Tensor:
+        return bilinear(planes[i], coords)
+
+    with torch.no_grad():
+        difference = max(
+            float((grid(i, coords[i % 2]).transpose(1, 2) - gather(i, coords[i % 2])).abs().max())
+            for i in range(len(planes))
+        )
+
+    def run(lookup: Callable[[int, Tensor], Tensor], tables: List[Tensor], backward: bool) -> Callable[[], None]:
         def call() -> None:
             with torch.set_grad_enabled(backward):
-                total = sum(lookup(p, coords[i % 2]).square().sum() for i, p in enumerate(tables))
+                total = sum(lookup(i, coords[i % 2]).square().sum() for i in range(len(tables)))
             if backward:
                 total.backward()
                 for p in tables:
@@ -96,7 +99,7 @@ def measure(channels: int, resolutions: Sequence[int], rows: int, samples: int, 
         return call
 
     lines = []
-    for name, lookup, tables in (("grid_sample", bilinear, planes), ("embedding_bag", corner_lookup, flat)):
+    for name, lookup, tables in (("grid_sample", grid, planes), ("embedding_bag", gather, flat)):
         forward = median_ms(run(lookup, tables, False), repeats, device)
         both = median_ms(run(lookup, tables, True), repeats, device)
         lines.append(f"| {samples:,} | {frames} of {rows} | {name} | {forward:.2f} | {both:.2f} | {difference:.1e} |")
