@@ -1,6 +1,7 @@
 """Plane lookups of a preset's field, forward and backward: the model's ``planes.bilinear`` (``grid_sample`` on
-channels-first planes) against a candidate for issue 25, a channels-last lookup through ``F.embedding_bag`` (each
-sample a weighted sum of its four corner rows; its backward sums rows by index instead of scattering channels).
+channels-first planes) against a candidate for issue 25, measured and rejected (``results/gpu_speed.md``): a
+channels-last lookup through ``F.embedding_bag`` (each sample a weighted sum of its four corner rows; its backward
+sums rows by index instead of scattering channels).
 
 Per resolution r of the preset: three spatial planes (C x r x r) and three space-time planes (C x T x r), at N
 samples uniform in [-1, 1]^3 whose times are drawn from ``--frames`` distinct frames of the T rows (a 2-frame
