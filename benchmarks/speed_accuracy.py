@@ -128,6 +128,7 @@ METHODS: Dict[str, str] = {
     "proposal-warmup": "Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
     "gear-rows-1": "Gear-NeRF with a gear function constant in time (k' of 1 row)",
     "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
+    "gear-1-rows-quarter": "Gear-NeRF whose gear 1 has T/4 rows in time (rows linear from T/4 to T) instead of 1",
     "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
     "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
     **{f"accumulation-{weight}": f"Gear-NeRF with a transparency loss on the training rays, weight {weight}"
@@ -143,6 +144,8 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
     uniform = ["--pipeline.model.base-sampler", "uniform"]
     samples_16 = ["--pipeline.model.num-samples", "16"]
     rays_768 = ["--pipeline.datamanager.train-num-rays-per-batch", "768"]
+    lowest = max(1, math.ceil(frames / 4))
+    quarter_rows = [str(round(lowest + (frames - lowest) * g / 3)) for g in range(4)]  # the presets' 4 gears
     overrides = {
         "gear-nerf": [],
         "kplanes": single,
@@ -166,6 +169,7 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "proposal-warmup": ["--pipeline.model.proposal-warmup", str(max(1, iterations // 6))],
         "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
         "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
+        "gear-1-rows-quarter": ["--pipeline.model.time-resolutions", *quarter_rows],
         "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
         "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
         **{f"accumulation-{weight}": ["--pipeline.model.accumulation-loss-mult", weight]
