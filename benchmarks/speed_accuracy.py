@@ -35,8 +35,8 @@ thing each changes:
   update warm-up at a sixth of the run, K-Planes' 5,000 of 30,000, instead of a fixed 5,000 steps); the field's
   untrained density ``initial-density``; for forward-facing rigs ``contraction`` (nerfacto's scene contraction
   beyond the box and its far plane); and the later levers of ``real_capture_causes.md``: ``gear-rows-1`` and
-  ``gear-rows-4``, ``resolutions-64-128``, ``time-smoothness-1e-4`` and the transparency loss ``accumulation-3e-4``,
-  ``accumulation-1e-3``, ``accumulation-1e-2``.
+  ``gear-rows-4``, ``resolutions-64-128``, ``time-smoothness-1e-4``, the transparency loss ``accumulation-3e-4``,
+  ``accumulation-1e-3``, ``accumulation-1e-2``, and ``gear-1-rows-quarter`` (gear 1 not static: T/4 rows).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
 the others.
