@@ -160,19 +160,20 @@ class Run:
 
         return [self.timed(window) / length for _ in range(count)]
 
+    def held_out_camera(self):
+        """The first held-out camera, on the model's device."""
+        return self.trainer.pipeline.datamanager.eval_dataset.cameras[0:1].to(self.model.device)
+
     def render(self, count: int) -> Tuple[List[float], Tensor]:
         """Seconds per full-frame render of the held-out camera (after one warm-up render), and the image."""
-        camera = self.trainer.pipeline.datamanager.eval_dataset.cameras[0:1].to(self.model.device)
-        self.model.eval()
-        try:
+        camera = self.held_out_camera()
+        with evaluating(self.model):
             self.model.get_outputs_for_camera(camera)
             if self.cuda:
                 torch.cuda.reset_peak_memory_stats()
             image: Dict[str, Tensor] = {}
             times = [self.timed(lambda: image.update(self.model.get_outputs_for_camera(camera))) for _ in range(count)]
             return times, image["rgb"]
-        finally:
-            self.model.train()
 
     def profile(self, iterations: int, work: Optional[Callable[[], Any]] = None) -> Tuple[float, float, float, str]:
         """Per call over ``iterations`` profiled calls of ``work`` (a training iteration by default): GPU busy
@@ -192,7 +193,7 @@ class Run:
 
     def render_profile(self) -> Tuple[float, float, float, str]:
         """``profile`` of one full-frame render of the held-out camera (after the renders above warmed it up)."""
-        camera = self.trainer.pipeline.datamanager.eval_dataset.cameras[0:1].to(self.model.device)
+        camera = self.held_out_camera()
         with evaluating(self.model):
             return self.profile(1, lambda: self.model.get_outputs_for_camera(camera))
 
