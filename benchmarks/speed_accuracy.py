@@ -129,6 +129,11 @@ METHODS: Dict[str, str] = {
     "gear-rows-1": "Gear-NeRF with a gear function constant in time (k' of 1 row)",
     "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
     "gear-1-rows-quarter": "Gear-NeRF whose gear 1 has T/4 rows in time (rows linear from T/4 to T) instead of 1",
+    "lr-half-decay": "Gear-NeRF whose learning rates follow the cosine schedule of a run twice as long (end at half)",
+    "kplanes-lr-half-decay": "plain K-Planes (N_gear = 1) with the learning-rate schedule of a run twice as long",
+    "views-every-frame": "Gear-NeRF whose updates render a view at every frame (loss maps of 64 pixels) instead of 4",
+    "gear-start-half": "Gear-NeRF whose gear function starts at g = 0.5 instead of 1 (Eq 5's jump to gear 2)",
+    "views-every-frame-start-half": "Gear-NeRF with update views at every frame and the gear function starting at 0.5",
     "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
     "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
     **{f"accumulation-{weight}": f"Gear-NeRF with a transparency loss on the training rays, weight {weight}"
@@ -146,6 +151,11 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
     rays_768 = ["--pipeline.datamanager.train-num-rays-per-batch", "768"]
     lowest = max(1, math.ceil(frames / 4))
     quarter_rows = [str(round(lowest + (frames - lowest) * g / 3)) for g in range(4)]  # the presets' 4 gears
+    half_decay = [arg for group in ("fields", "proposal-networks")
+                  for arg in (f"--optimizers.{group}.scheduler.max-steps", str(2 * iterations))]  # fmt: skip
+    every_frame = ["--pipeline.gear-updates.views-per-update", str(frames),
+                   "--pipeline.gear-updates.loss-map-size", "64", "--pipeline.gear-updates.patch-size", "4"]
+    start_half = ["--pipeline.model.gear-start", "0.5"]
     overrides = {
         "gear-nerf": [],
         "kplanes": single,
@@ -170,6 +180,11 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
         "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
         "gear-1-rows-quarter": ["--pipeline.model.time-resolutions", *quarter_rows],
+        "lr-half-decay": half_decay,
+        "kplanes-lr-half-decay": [*single, *half_decay],
+        "views-every-frame": every_frame,
+        "gear-start-half": start_half,
+        "views-every-frame-start-half": [*every_frame, *start_half],
         "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
         "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
         **{f"accumulation-{weight}": ["--pipeline.model.accumulation-loss-mult", weight]

@@ -1,0 +1,53 @@
+"""Where a trained Gear-NeRF run put its gears, against the people's masks: at every frame of a training camera that
+has masks, the share of the people's pixels at gear >= 2 and of the other pixels at gear 1 (Eq 5 at the surface each
+pixel sees, ``GearNeRFModel.visible_gear_levels``).
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/gear_masks.py <run>/config.yml ../shared/data/real/panoptic_basketball_video_masks \
+        --cameras cam05 cam20
+
+The held-out camera of ``panoptic-video`` (cam00) has no masks, so ``speed_accuracy.py`` cannot score its gear maps;
+this scores training cameras instead, rendered at a quarter of their size. Masks are ``<camera>/<frame:05d>.png``,
+numbered within the loaded window. It measures; it changes nothing.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence, Tuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import tyro
+from nerfstudio.utils.eval_utils import eval_setup
+from PIL import Image
+
+
+@torch.no_grad()
+def gear_shares(config: Path, masks: Path, cameras: Sequence[str] = ("cam05", "cam20"), scale: float = 0.25) -> Tuple[float, float]:
+    """People's pixels at gear >= 2 and other pixels at gear 1, over every frame of the given training cameras."""
+    _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    model, dataset = pipeline.model, pipeline.datamanager.train_dataset
+    names, numbers = dataset.metadata["camera_names"], dataset.metadata["frame_numbers"]
+    camera_ids, frame_ids = dataset.metadata["camera_ids"], dataset.metadata["frame_ids"]
+    counts = np.zeros(4)
+    for name in cameras:
+        camera_id = names.index(name)
+        for index in torch.nonzero(camera_ids == camera_id)[:, 0].tolist():
+            camera = dataset.cameras[index : index + 1].to(model.device)
+            camera.rescale_output_resolution(scale)
+            levels = model.visible_gear_levels(camera).cpu()
+            mask = torch.from_numpy(np.array(Image.open(masks / name / f"{int(numbers[int(frame_ids[index])]):05d}.png").convert("L")) > 127)
+            people = F.interpolate(mask[None, None].float(), size=tuple(levels.shape), mode="area")[0, 0] > 0.5
+            counts += [int((levels[people] >= 2).sum()), int(people.sum()), int((levels[~people] == 1).sum()), int((~people).sum())]
+    return counts[0] / max(counts[1], 1), counts[2] / max(counts[3], 1)
+
+
+def main(config: tyro.conf.Positional[Path], masks: tyro.conf.Positional[Path], cameras: Tuple[str, ...] = ("cam05", "cam20")) -> None:
+    """Print the two shares of one run."""
+    people, static = gear_shares(config, masks, cameras)
+    print(f"{config.parent.name}: people's pixels at gear >= 2: {people:.3f}; other pixels at gear 1: {static:.3f}")
+
+
+if __name__ == "__main__":
+    tyro.cli(main)
