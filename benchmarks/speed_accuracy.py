@@ -36,7 +36,9 @@ thing each changes:
   untrained density ``initial-density``; for forward-facing rigs ``contraction`` (nerfacto's scene contraction
   beyond the box and its far plane); and the later levers of ``real_capture_causes.md``: ``gear-rows-1`` and
   ``gear-rows-4``, ``resolutions-64-128``, ``time-smoothness-1e-4``, the transparency loss ``accumulation-3e-4``,
-  ``accumulation-1e-3``, ``accumulation-1e-2``, and ``gear-1-rows-quarter`` (gear 1 not static: T/4 rows).
+  ``accumulation-1e-3``, ``accumulation-1e-2``, ``gear-1-rows-quarter`` (gear 1 not static: T/4 rows),
+  ``views-every-frame`` (each gear update renders a view at every frame, at loss maps of 64 pixels), and
+  ``lr-half-decay`` and ``kplanes-lr-half-decay`` (the cosine schedule of a run twice as long, ending at half the rate).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
 the others.
@@ -132,8 +134,6 @@ METHODS: Dict[str, str] = {
     "lr-half-decay": "Gear-NeRF whose learning rates follow the cosine schedule of a run twice as long (end at half)",
     "kplanes-lr-half-decay": "plain K-Planes (N_gear = 1) with the learning-rate schedule of a run twice as long",
     "views-every-frame": "Gear-NeRF whose updates render a view at every frame (loss maps of 64 pixels) instead of 4",
-    "gear-start-half": "Gear-NeRF whose gear function starts at g = 0.5 instead of 1 (Eq 5's jump to gear 2)",
-    "views-every-frame-start-half": "Gear-NeRF with update views at every frame and the gear function starting at 0.5",
     "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
     "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
     **{f"accumulation-{weight}": f"Gear-NeRF with a transparency loss on the training rays, weight {weight}"
@@ -155,7 +155,6 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
                   for arg in (f"--optimizers.{group}.scheduler.max-steps", str(2 * iterations))]  # fmt: skip
     every_frame = ["--pipeline.gear-updates.views-per-update", str(frames),
                    "--pipeline.gear-updates.loss-map-size", "64", "--pipeline.gear-updates.patch-size", "4"]
-    start_half = ["--pipeline.model.gear-start", "0.5"]
     overrides = {
         "gear-nerf": [],
         "kplanes": single,
@@ -183,8 +182,6 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "lr-half-decay": half_decay,
         "kplanes-lr-half-decay": [*single, *half_decay],
         "views-every-frame": every_frame,
-        "gear-start-half": start_half,
-        "views-every-frame-start-half": [*every_frame, *start_half],
         "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
         "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
         **{f"accumulation-{weight}": ["--pipeline.model.accumulation-loss-mult", weight]

@@ -105,7 +105,6 @@ class GearField(Field):
         gear_feature_dim: M', channels of the gear function's planes.
         gear_resolution: spatial resolution of the gear function's planes.
         gear_time_resolution: temporal resolution of k'; ``num_frames`` when None.
-        gear_start: g everywhere before the first gear update (``GearFunction``'s start).
         time_resolutions: rows of each gear's space-time planes; ``temporal_resolutions`` (Sec 4.4) when None.
         geo_feat_dim: features passed from the density MLP to the colour MLP.
         hidden_dim: width of the density and SAM MLPs.
@@ -130,7 +129,6 @@ class GearField(Field):
         gear_feature_dim: int = 8,
         gear_resolution: int = 64,
         gear_time_resolution: Optional[int] = None,
-        gear_start: float = 1.0,
         time_resolutions: Optional[Sequence[int]] = None,
         geo_feat_dim: int = 15,
         hidden_dim: int = 64,
@@ -177,9 +175,7 @@ class GearField(Field):
         self.used_gears_seen: Tuple[Optional[Tensor], int, List[bool]] = (None, -1, [])
         """(used_columns tensor, its version, used_gears) when last read on the host (``gears_in_use``)."""
         self.basis = nn.Linear(3 * feature_dim * len(resolutions), feature_dim, bias=False)
-        self.gear_function = GearFunction(
-            gear_feature_dim, gear_resolution, max(1, gear_time_resolution or num_frames), gear_start
-        )
+        self.gear_function = GearFunction(gear_feature_dim, gear_resolution, max(1, gear_time_resolution or num_frames))
 
         self.direction_encoding = SHEncoding(levels=4, implementation="torch")
         self.density_net = MLP(

@@ -33,23 +33,19 @@ def init_gear_time_plane(plane: Tensor) -> None:
 class GearFunction(nn.Module):
     """Eq 4: the continuous gear value g(x, t) from its own planes h'_j, k'_j.
 
-    g = start + sum_j 1^T (h'_j(.) ⊙ k'_j(.)). The offset realises the initialisation g = start exactly (the
-    paper's g = 1, Sec 4.3, by default): h' and k' are initialised on complementary channels (h' is zero where k'
-    is not and vice versa), so every product is exactly 0 at the start while dg/dk' = h' and dg/dh' = k' are
+    g = 1 + sum_j 1^T (h'_j(.) ⊙ k'_j(.)). The offset 1 realises the paper's initialisation g = 1
+    (Sec 4.3) exactly: h' and k' are initialised on complementary channels (h' is zero where k' is not
+    and vice versa), so every product is exactly 0 at the start while dg/dk' = h' and dg/dh' = k' are
     non-zero, i.e. the first gear update already moves both h' and k'.
 
     Args:
         feature_dim: channels M' of h' and k' (even).
         resolution: spatial resolution of the planes.
         time_resolution: temporal resolution of k'.
-        start: g everywhere before the first update. The paper's 1 lies on Eq 5's jump to gear 2, so any rise
-            of g at a point that no S_stay sample holds down (an upshift spreads along the planes' rows and
-            columns) moves that point up a gear; below 1, gear 1 has a buffer of 1 - start.
     """
 
-    def __init__(self, feature_dim: int = 8, resolution: int = 64, time_resolution: int = 1, start: float = 1.0) -> None:
+    def __init__(self, feature_dim: int = 8, resolution: int = 64, time_resolution: int = 1) -> None:
         super().__init__()
-        self.start = start
         if feature_dim < 2 or feature_dim % 2:
             raise ValueError(f"gear_feature_dim must be even and >= 2, got {feature_dim}")
         self.space_planes = PlaneTriple(feature_dim, [(resolution, resolution)], init_gear_space_plane)
@@ -58,4 +54,4 @@ class GearFunction(nn.Module):
     def forward(self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N"]:
         """g at normalised positions x in [-1, 1]^3 and times t in [0, 1]."""
         products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
-        return self.start + products.sum(dim=(0, 1))
+        return 1.0 + products.sum(dim=(0, 1))

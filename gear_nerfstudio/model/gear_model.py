@@ -84,8 +84,6 @@ class GearNeRFModelConfig(ModelConfig):
     """Spatial resolution of h', k'."""
     gear_time_resolution: Optional[int] = None
     """Temporal resolution of k'; None uses num_frames."""
-    gear_start: float = 1.0
-    """g everywhere before the first gear update: the paper's 1 (Sec 4.3) lies on Eq 5's jump to gear 2."""
     time_resolutions: Optional[Tuple[int, ...]] = None
     """Rows of each gear's space-time planes k^G (one value per gear); None: Sec 4.4, linear from 1 row
     (gear 1) to num_frames rows (gear N_gear). With one gear, e.g. ``(T // 2,)`` gives the paper's "naive
@@ -248,7 +246,6 @@ class GearNeRFModel(Model):
             gear_feature_dim=config.gear_feature_dim,
             gear_resolution=config.gear_resolution,
             gear_time_resolution=config.gear_time_resolution,
-            gear_start=config.gear_start,
             time_resolutions=config.time_resolutions,
             geo_feat_dim=config.geo_feat_dim,
             hidden_dim=config.hidden_dim,
