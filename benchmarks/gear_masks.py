@@ -2,8 +2,8 @@
 has masks, the share of the people's pixels at gear >= 2 and of the other pixels at gear 1 (Eq 5 at the surface each
 pixel sees, ``GearNeRFModel.visible_gear_levels``).
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/gear_masks.py <run>/config.yml ../shared/data/real/panoptic_basketball_video_masks \
-        --cameras cam05 cam20
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/gear_masks.py <run>/config.yml \
+        ../shared/data/real/panoptic_basketball_video_masks --cameras cam05 cam20
 
 The held-out camera of ``panoptic-video`` (cam00) has no masks, so ``speed_accuracy.py`` cannot score its gear maps;
 this scores training cameras instead, rendered at a quarter of their size. Masks are ``<camera>/<frame:05d>.png``,
@@ -24,7 +24,7 @@ from PIL import Image
 
 
 @torch.no_grad()
-def gear_shares(config: Path, masks: Path, cameras: Sequence[str] = ("cam05", "cam20"), scale: float = 0.25) -> Tuple[float, float]:
+def gear_shares(config: Path, masks: Path, cameras: Sequence[str], scale: float = 0.25) -> Tuple[float, float]:
     """People's pixels at gear >= 2 and other pixels at gear 1, over every frame of the given training cameras."""
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
     model, dataset = pipeline.model, pipeline.datamanager.train_dataset
@@ -37,13 +37,16 @@ def gear_shares(config: Path, masks: Path, cameras: Sequence[str] = ("cam05", "c
             camera = dataset.cameras[index : index + 1].to(model.device)
             camera.rescale_output_resolution(scale)
             levels = model.visible_gear_levels(camera).cpu()
-            mask = torch.from_numpy(np.array(Image.open(masks / name / f"{int(numbers[int(frame_ids[index])]):05d}.png").convert("L")) > 127)
-            people = F.interpolate(mask[None, None].float(), size=tuple(levels.shape), mode="area")[0, 0] > 0.5
-            counts += [int((levels[people] >= 2).sum()), int(people.sum()), int((levels[~people] == 1).sum()), int((~people).sum())]
+            image = Image.open(masks / name / f"{int(numbers[int(frame_ids[index])]):05d}.png").convert("L")
+            mask = torch.from_numpy(np.array(image) > 127)[None, None].float()
+            people = F.interpolate(mask, size=tuple(levels.shape), mode="area")[0, 0] > 0.5
+            counts += [(levels[people] >= 2).sum(), people.sum(), (levels[~people] == 1).sum(), (~people).sum()]
     return counts[0] / max(counts[1], 1), counts[2] / max(counts[3], 1)
 
 
-def main(config: tyro.conf.Positional[Path], masks: tyro.conf.Positional[Path], cameras: Tuple[str, ...] = ("cam05", "cam20")) -> None:
+def main(
+    config: tyro.conf.Positional[Path], masks: tyro.conf.Positional[Path], cameras: Tuple[str, ...] = ("cam05", "cam20")
+) -> None:
     """Print the two shares of one run."""
     people, static = gear_shares(config, masks, cameras)
     print(f"{config.parent.name}: people's pixels at gear >= 2: {people:.3f}; other pixels at gear 1: {static:.3f}")

@@ -38,7 +38,7 @@ thing each changes:
   ``gear-rows-4``, ``resolutions-64-128``, ``time-smoothness-1e-4``, the transparency loss ``accumulation-3e-4``,
   ``accumulation-1e-3``, ``accumulation-1e-2``, ``gear-1-rows-quarter`` (gear 1 not static: T/4 rows),
   ``views-every-frame`` (each gear update renders a view at every frame, at loss maps of 64 pixels), and
-  ``lr-half-decay`` and ``kplanes-lr-half-decay`` (the cosine schedule of a run twice as long, ending at half the rate).
+  ``lr-half-decay`` (the cosine schedule of a run twice as long, ending at about half the rate).
 
 Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
 the others.
@@ -132,7 +132,6 @@ METHODS: Dict[str, str] = {
     "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
     "gear-1-rows-quarter": "Gear-NeRF whose gear 1 has T/4 rows in time (rows linear from T/4 to T) instead of 1",
     "lr-half-decay": "Gear-NeRF whose learning rates follow the cosine schedule of a run twice as long (end at half)",
-    "kplanes-lr-half-decay": "plain K-Planes (N_gear = 1) with the learning-rate schedule of a run twice as long",
     "views-every-frame": "Gear-NeRF whose updates render a view at every frame (loss maps of 64 pixels) instead of 4",
     "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
     "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
@@ -151,10 +150,6 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
     rays_768 = ["--pipeline.datamanager.train-num-rays-per-batch", "768"]
     lowest = max(1, math.ceil(frames / 4))
     quarter_rows = [str(round(lowest + (frames - lowest) * g / 3)) for g in range(4)]  # the presets' 4 gears
-    half_decay = [arg for group in ("fields", "proposal-networks")
-                  for arg in (f"--optimizers.{group}.scheduler.max-steps", str(2 * iterations))]  # fmt: skip
-    every_frame = ["--pipeline.gear-updates.views-per-update", str(frames),
-                   "--pipeline.gear-updates.loss-map-size", "64", "--pipeline.gear-updates.patch-size", "4"]
     overrides = {
         "gear-nerf": [],
         "kplanes": single,
@@ -179,9 +174,10 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
         "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
         "gear-1-rows-quarter": ["--pipeline.model.time-resolutions", *quarter_rows],
-        "lr-half-decay": half_decay,
-        "kplanes-lr-half-decay": [*single, *half_decay],
-        "views-every-frame": every_frame,
+        "lr-half-decay": [arg for group in ("fields", "proposal-networks")
+                          for arg in (f"--optimizers.{group}.scheduler.max-steps", str(2 * iterations))],  # fmt: skip
+        "views-every-frame": ["--pipeline.gear-updates.views-per-update", str(frames),
+                              "--pipeline.gear-updates.loss-map-size", "64", "--pipeline.gear-updates.patch-size", "4"],
         "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
         "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
         **{f"accumulation-{weight}": ["--pipeline.model.accumulation-loss-mult", weight]
