@@ -20,7 +20,8 @@ import torch
 import torch.nn.functional as F
 import tyro
 from nerfstudio.utils.eval_utils import eval_setup
-from PIL import Image
+
+from speed_accuracy import gear_mask_counts, read_mask
 
 
 @torch.no_grad()
@@ -30,17 +31,16 @@ def gear_shares(config: Path, masks: Path, cameras: Sequence[str], scale: float 
     model, dataset = pipeline.model, pipeline.datamanager.train_dataset
     names, numbers = dataset.metadata["camera_names"], dataset.metadata["frame_numbers"]
     camera_ids, frame_ids = dataset.metadata["camera_ids"], dataset.metadata["frame_ids"]
-    counts = np.zeros(4)
+    counts = np.zeros(4, dtype=np.int64)
     for name in cameras:
         camera_id = names.index(name)
         for index in torch.nonzero(camera_ids == camera_id)[:, 0].tolist():
             camera = dataset.cameras[index : index + 1].to(model.device)
             camera.rescale_output_resolution(scale)
-            levels = model.visible_gear_levels(camera).cpu()
-            image = Image.open(masks / name / f"{int(numbers[int(frame_ids[index])]):05d}.png").convert("L")
-            mask = torch.from_numpy(np.array(image) > 127)[None, None].float()
-            people = F.interpolate(mask, size=tuple(levels.shape), mode="area")[0, 0] > 0.5
-            counts += [(levels[people] >= 2).sum(), people.sum(), (levels[~people] == 1).sum(), (~people).sum()]
+            levels = model.visible_gear_levels(camera).cpu().numpy()
+            mask = torch.from_numpy(read_mask(masks, name, int(numbers[int(frame_ids[index])])))[None, None].float()
+            people = F.interpolate(mask, size=levels.shape, mode="area")[0, 0].numpy() > 0.5
+            counts += gear_mask_counts(levels, people)
     return counts[0] / max(counts[1], 1), counts[2] / max(counts[3], 1)
 
 

@@ -174,8 +174,7 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
         "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
         "gear-1-rows-quarter": ["--pipeline.model.time-resolutions", *quarter_rows],
-        "lr-half-decay": [arg for group in ("fields", "proposal-networks")
-                          for arg in (f"--optimizers.{group}.scheduler.max-steps", str(2 * iterations))],  # fmt: skip
+        "lr-half-decay": decay_over(2 * iterations),
         "views-every-frame": ["--pipeline.gear-updates.views-per-update", str(frames),
                               "--pipeline.gear-updates.loss-map-size", "64", "--pipeline.gear-updates.patch-size", "4"],
         "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
@@ -186,6 +185,25 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     return overrides[method]
+
+
+def decay_over(steps: int) -> List[str]:
+    """``ns-train`` overrides that spread the radiance fields' cosine learning-rate decay over ``steps``."""
+    return [arg for group in ("fields", "proposal-networks")
+            for arg in (f"--optimizers.{group}.scheduler.max-steps", str(steps))]  # fmt: skip
+
+
+def read_mask(masks: Path, camera: str, number: int) -> np.ndarray:
+    """A real capture's foreground mask ``<masks>/<camera>/<number:05d>.png`` as an (H, W) bool map."""
+    from PIL import Image
+
+    return np.array(Image.open(masks / camera / f"{number:05d}.png").convert("L")) > 127
+
+
+def gear_mask_counts(levels: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """A gear map (Eq 5 levels, H x W) against a map of moving pixels: [moving pixels at gear >= 2, moving pixels,
+    other pixels at gear 1, other pixels]."""
+    return np.array([(levels[moving] >= 2).sum(), moving.sum(), (levels[~moving] == 1).sum(), (~moving).sum()])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -237,13 +255,9 @@ class Scene:
         if self.synthetic:
             motion = np.load(self.folder(output) / "ground_truth" / f"{self.held_out}.npz")["motion"]
             return lambda index, number: motion[index] > 0
-        from PIL import Image
-
         if self.masks is None:
             return None
-        return lambda index, number: (
-            np.array(Image.open(self.masks / self.held_out / f"{number:05d}.png").convert("L")) > 127
-        )
+        return lambda index, number: read_mask(self.masks, self.held_out, number)
 
 
 SCENES: Dict[str, Scene] = {
@@ -389,8 +403,7 @@ class SpeedAccuracyBenchmark:
             "--output-dir", str(self.output / "runs"), "--experiment-name", scene.name,
             "--timestamp", f"{method}-seed{seed}", "--machine.seed", str(seed),
             "--max-num-iterations", str(iterations),
-            "--optimizers.fields.scheduler.max-steps", str(iterations),
-            "--optimizers.proposal-networks.scheduler.max-steps", str(iterations),
+            *decay_over(iterations),
             "--steps-per-save", str(steps_per_save), "--save-only-latest-checkpoint", "False",
             "--steps-per-eval-batch", "0", "--steps-per-eval-image", "0", "--steps-per-eval-all-images", "0",
             "--machine.device-type", self.device, "--vis", "tensorboard",
@@ -817,7 +830,7 @@ def evaluate_checkpoints(
         metrics: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": [], "accumulation": [], "near_layer": []}
         last = entry["step"] == max(e["step"] for e in checkpoints)
         render_seconds, samples, pixels = 0.0, 0.0, 0
-        moving_up, moving_all, static_low, static_all = 0, 0, 0, 0
+        gear_counts = np.zeros(4, dtype=np.int64)
         for index in frames:
             if cuda:
                 torch.cuda.synchronize()
@@ -842,11 +855,7 @@ def evaluate_checkpoints(
                 continue
             levels = model.visible_gear_levels(dataset.cameras[index : index + 1], outputs).cpu().numpy()
             frame = int(dataset.metadata["frame_ids"][index])
-            truth = moving(frame, int(dataset.metadata["frame_numbers"][frame]))
-            moving_up += int((levels[truth] >= 2).sum())
-            moving_all += int(truth.sum())
-            static_low += int((levels[~truth] == 1).sum())
-            static_all += int((~truth).sum())
+            gear_counts += gear_mask_counts(levels, moving(frame, int(dataset.metadata["frame_numbers"][frame])))
         total = sum(p.numel() for p in model.parameters())
         unused = sum(p.numel() for p in model.field.parameters()) - model.field.parameters_in_use()
         results.append(
@@ -861,8 +870,8 @@ def evaluate_checkpoints(
                 "near_layer": float(np.mean(metrics["near_layer"])),
                 "fps": len(frames) / render_seconds,
                 "samples_per_ray": samples / pixels,
-                "moving_at_gear_2": moving_up / moving_all if moving_all else None,
-                "static_at_gear_1": static_low / static_all if static_all else None,
+                "moving_at_gear_2": float(gear_counts[0] / gear_counts[1]) if gear_counts[1] else None,
+                "static_at_gear_1": float(gear_counts[2] / gear_counts[3]) if gear_counts[3] else None,
                 "gear_updates": int(pipeline.gear_update_state.num_updates),
                 "parameters": int(total),
                 "parameters_in_use": int(total - unused),
