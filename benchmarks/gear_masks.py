@@ -6,7 +6,8 @@ pixel sees, ``GearNeRFModel.visible_gear_levels``).
         ../shared/data/real/panoptic_basketball_video_masks --cameras cam05 cam20
 
 The held-out camera of ``panoptic-video`` (cam00) has no masks, so ``speed_accuracy.py`` cannot score its gear maps;
-this scores training cameras instead, rendered at a quarter of their size. Masks are ``<camera>/<frame:05d>.png``,
+this scores training cameras instead, rendered at a quarter of their size, or with ``--held-out`` the held-out
+camera of a run that held out one with masks (``tracking_real.py`` holds out cam20 of the 31-camera capture). Masks are ``<camera>/<frame:05d>.png``,
 numbered within the loaded window. It measures; it changes nothing.
 """
 
@@ -25,10 +26,14 @@ from speed_accuracy import gear_mask_counts, read_mask
 
 
 @torch.no_grad()
-def gear_shares(config: Path, masks: Path, cameras: Sequence[str], scale: float = 0.25) -> Tuple[float, float]:
-    """People's pixels at gear >= 2 and other pixels at gear 1, over every frame of the given training cameras."""
+def gear_shares(
+    config: Path, masks: Path, cameras: Sequence[str], scale: float = 0.25, held_out: bool = False
+) -> Tuple[float, float]:
+    """People's pixels at gear >= 2 and other pixels at gear 1, over every frame of the given training cameras (of
+    the held-out cameras with `held_out`)."""
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
-    model, dataset = pipeline.model, pipeline.datamanager.train_dataset
+    datamanager = pipeline.datamanager
+    model, dataset = pipeline.model, datamanager.eval_dataset if held_out else datamanager.train_dataset
     names, numbers = dataset.metadata["camera_names"], dataset.metadata["frame_numbers"]
     camera_ids, frame_ids = dataset.metadata["camera_ids"], dataset.metadata["frame_ids"]
     counts = np.zeros(4, dtype=np.int64)
@@ -45,10 +50,13 @@ def gear_shares(config: Path, masks: Path, cameras: Sequence[str], scale: float 
 
 
 def main(
-    config: tyro.conf.Positional[Path], masks: tyro.conf.Positional[Path], cameras: Tuple[str, ...] = ("cam05", "cam20")
+    config: tyro.conf.Positional[Path],
+    masks: tyro.conf.Positional[Path],
+    cameras: Tuple[str, ...] = ("cam05", "cam20"),
+    held_out: bool = False,
 ) -> None:
     """Print the two shares of one run."""
-    people, static = gear_shares(config, masks, cameras)
+    people, static = gear_shares(config, masks, cameras, held_out=held_out)
     print(f"{config.parent.name}: people's pixels at gear >= 2: {people:.3f}; other pixels at gear 1: {static:.3f}")
 
 

@@ -190,14 +190,14 @@ def write_report(path: Path, table: List[str], per_time: List[str], timing: str)
 
 def track_click(
     config: Path, folder: Path, camera: str, click_time: float, pixel: Tuple[float, float], target: str,
-    propagation: str,
+    propagation: str, video: bool = True,
 ) -> Dict:
     """`ns-gear-track` of one positive click at `pixel` of `camera` into the `target` camera(s), written to
-    `folder`; returns its tracking.json."""
+    `folder` (with its overlay videos when `video`); returns its tracking.json."""
     ns(
         "ns-gear-track", "--load-config", str(config), "--output-dir", str(folder), "--overwrite", "--click-camera",
         camera, "--click-time", str(click_time), "--positive", str(pixel[0]), str(pixel[1]), "--target-cameras",
-        target, "--propagation", propagation,
+        target, "--propagation", propagation, "--video" if video else "--no-video",
     )  # fmt: skip
     return json.loads((folder / "tracking.json").read_text())
 

@@ -1,12 +1,19 @@
-"""Free-viewpoint tracking (Sec 4.5) on real video: the CMU Panoptic basketball capture
-(../shared/data/real/panoptic_basketball, 16 cameras, 20 frames, 320x180), scored against its foreground
-masks (every camera but 10; a connected component of at least PERSON_PIXELS pixels is one person).
+"""Free-viewpoint tracking (Sec 4.5) on real video: the CMU Panoptic basketball captures, scored against their
+foreground masks (`<capture>_masks/<camera>/<frame>.png`; a connected component of at least PERSON_SHARE of the
+image is one person):
+- ../shared/data/real/panoptic_basketball (the default): Technicolor layout, 16 cameras, 20 frames, 320x180;
+  masks for every camera but 10;
+- ../shared/data/real/panoptic_basketball_video: Neural 3D Video layout, 31 cameras, 90 frames, 608x336; masks
+  for 27 cameras (not cam00, the parser's default held-out camera, so pass `--held-out cam20 --click-camera
+  cam13`, two cameras that see both people at most frames). `--downscale 2 --frame-count 30 --click-frame 15
+  --iterations 3750` trains it as the speed/accuracy benchmark's `panoptic-video` scene (304x168, frames 0-29).
 
 Two measurements:
 1. **The SAM backend on ground-truth frames** (no NeRF): one positive click per person per masked camera
-   per frame, at the mask pixel deepest inside the person, decoded on the backend's encoding of the real
-   frame; mIoU and accuracy against that person's component, with the best of the decoder's candidate
-   masks and the grid's ceiling (the person's own mask cut to the embedding's cells) beside them.
+   per frame (SEGMENTER_FRAMES frames evenly spread), at the mask pixel deepest inside the person, decoded on
+   the backend's encoding of the real frame; mIoU and accuracy against that person's component, with the best of
+   the decoder's candidate masks and the grid's ceiling (the person's own mask cut to the embedding's cells)
+   beside them.
 2. **Through the rendered 4D embedding**: trains a preset with `ns-train` on the capture (camera
    `--held-out` held out; or takes a trained run with `--config`), clicks each person in `--click-camera`
    at `--click-frame` and runs `ns-gear-track` into the held-out camera at every frame time, once per
@@ -14,7 +21,8 @@ Two measurements:
    holds the projected click at the clicked time (else the nearest); at the other times, frame by frame,
    the component that overlaps the previous frame's most (the ground truth is followed, not the
    prediction). Reports mIoU / accuracy at the clicked time and t-mIoU / t-accuracy at the others, as the
-   paper's tracking table.
+   paper's tracking table, and writes `overlay_person<k>_<propagation>.png`: held-out frames with the tracked
+   mask (red) and the person's true outline (green).
 
     .venv/bin/python benchmarks/tracking_real.py --output outputs/tracking_real
 
@@ -41,15 +49,61 @@ from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from tracking import PROPAGATIONS, mean, ns, pct, per_time_table, track_click, write_report
 
 CAPTURE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "panoptic_basketball"
-PERSON_PIXELS = 1000
-"""Smallest mask component counted as a person (the ball is 400-600 pixels, the people 1,300-13,000)."""
+PERSON_SHARE = 1000 / (320 * 180)
+"""Smallest mask component counted as a person, as a share of the image (at 320x180 the ball is 400-600 pixels,
+the people 1,300-13,000)."""
+SEGMENTER_FRAMES = 20
+"""Frames per camera, evenly spread, on which the segmenter is scored without the NeRF."""
+OVERLAY_FRAMES = 5
+"""Held-out frames, evenly spread, in each overlay picture."""
 
 
 def people(mask_file: Path) -> List[np.ndarray]:
-    """The person components (H, W) bool of a foreground mask, largest first."""
-    labels, count = ndimage.label(np.asarray(Image.open(mask_file)) > 127)
+    """The person components (H, W) bool of a foreground mask (8-bit or 1-bit), largest first."""
+    labels, count = ndimage.label(np.asarray(Image.open(mask_file).convert("L")) > 127)
     sizes = np.bincount(labels.ravel(), minlength=count + 1)[1:]
-    return [labels == index + 1 for index in np.argsort(-sizes) if sizes[index] >= PERSON_PIXELS]
+    return [labels == index + 1 for index in np.argsort(-sizes) if sizes[index] >= PERSON_SHARE * labels.size]
+
+
+@dataclasses.dataclass
+class Capture:
+    """A capture's frames and how `ns-train` reads it, in either layout."""
+
+    folder: Path
+
+    @property
+    def n3d(self) -> bool:
+        """Neural 3D Video layout (camNN.mp4 and poses_bounds.npy) rather than Technicolor's."""
+        return (self.folder / "poses_bounds.npy").exists()
+
+    def frames(self, camera: str, indices: List[int]) -> Dict[int, np.ndarray]:
+        """RGB uint8 frames of a camera, by index."""
+        if not self.n3d:
+            files = {index: self.folder / f"Basketball_undist_{index:05d}_{camera}.png" for index in indices}
+            return {index: np.asarray(Image.open(file).convert("RGB")) for index, file in files.items()}
+        import av
+
+        with av.open(str(self.folder / f"{camera}.mp4")) as container:
+            decoded = enumerate(container.decode(video=0))
+            return {number: frame.to_ndarray(format="rgb24") for number, frame in decoded if number in indices}
+
+    def dataparser(self, held_out: str, downscale: int, frame_count: Optional[int]) -> List[str]:
+        """The dataparser's subcommand and options for this capture with `held_out` held out, frames downscaled by
+        `downscale`, the first `frame_count` frames (all when None)."""
+        options = ["--held-out-camera", held_out, "--downscale-factor", str(downscale)]
+        if frame_count is not None:
+            options += ["--frame-count", str(frame_count)]
+        if self.n3d:
+            return ["neural-3d-video-data", "--data", str(self.folder), *options]
+        return ["technicolor-data", "--data", str(self.folder), "--near", "0.3", "--far", "7", *options]
+
+
+def shrink(mask: np.ndarray, factor: int) -> np.ndarray:
+    """A mask (H, W) at the size the dataparser gives frames downscaled by `factor` (nearest neighbour)."""
+    if factor == 1:
+        return mask
+    height, width = mask.shape
+    return np.asarray(Image.fromarray(mask).resize((width // factor, height // factor), Image.NEAREST))
 
 
 def deepest_pixel(mask: np.ndarray) -> Tuple[float, float]:
@@ -67,24 +121,34 @@ class RealTrackingBenchmark:
     seed: int = 42
     """Training seed (`--machine.seed`; nerfstudio's default is 42)."""
     held_out: str = "00"
-    """Held-out camera: it must have masks; camera 00 sees both people at every frame (06, the speed
-    benchmark's, sees one)."""
+    """Held-out camera: it must have masks; camera 00 of panoptic_basketball sees both people at every frame (06,
+    the speed benchmark's, sees one)."""
     config: Optional[Path] = None
     """config.yml of a run already trained on the capture with `--held-out` held out (skips training)."""
     click_camera: str = "12"
     click_frame: int = 10
+    downscale: int = 1
+    """Train on frames downscaled by this factor (the dataparser's --downscale-factor); masks are scored at that
+    size."""
+    frame_count: Optional[int] = None
+    """Train on the first this many frames (the dataparser's --frame-count); all by default."""
 
     def main(self) -> None:
         started = time.time()
         masks = self.capture.parent / f"{self.capture.name}_masks"
         frames = len(list((masks / self.held_out).glob("*.png")))
-        lines = [self.segmenter_on_frames(masks, frames), ""]
+        frames = frames if self.frame_count is None else min(frames, self.frame_count)
+        capture = Capture(self.capture)
+        lines = [self.segmenter_on_frames(capture, masks, frames), ""]
         segmented = time.time()
-        config = self.config or self.train()
+        config = self.config or self.train(capture)
         trained = time.time()
         click_time = self.click_frame / (frames - 1)
         clicked_people = people(masks / self.click_camera / f"{self.click_frame:05d}.png")
-        held_out = [people(masks / self.held_out / f"{frame:05d}.png") for frame in range(frames)]
+        held_out = [
+            [shrink(person, self.downscale) for person in people(masks / self.held_out / f"{frame:05d}.png")]
+            for frame in range(frames)
+        ]
         lines += [
             f"Run: `{config}`; click in camera {self.click_camera} at time {click_time:.3f} (frame "
             f"{self.click_frame}), one positive click per person at the mask pixel deepest inside them; target: "
@@ -95,11 +159,15 @@ class RealTrackingBenchmark:
         ]
         details = []
         for index, person in enumerate(clicked_people):
-            x, y = deepest_pixel(person)
+            x, y = (value / self.downscale for value in deepest_pixel(person))
             for propagation in PROPAGATIONS:
                 folder = self.output / f"track_person{index}_{propagation}"
-                summary = track_click(config, folder, self.click_camera, click_time, (x, y), self.held_out, propagation)
-                scores = score(folder, summary, held_out, click_time)
+                summary = track_click(
+                    config, folder, self.click_camera, click_time, (x, y), self.held_out, propagation, video=False
+                )
+                scores, truth = score(folder, summary, held_out, click_time)
+                write_overlay(self.output / f"overlay_person{index}_{propagation}.png", capture, self.held_out, folder,
+                              summary, truth)  # fmt: skip
                 at_click = [s for t, s in scores.items() if t == click_time]
                 other = [s for t, s in scores.items() if t != click_time]
                 lines.append(
@@ -116,16 +184,16 @@ class RealTrackingBenchmark:
             f"{tracked - trained:.0f} s, wall clock.",
         )  # fmt: skip
 
-    def segmenter_on_frames(self, masks: Path, frames: int) -> str:
-        """mIoU / accuracy of one click per person on the backend's encoding of every masked frame, the best of
-        the candidate masks, and the grid's ceiling."""
+    def segmenter_on_frames(self, capture: Capture, masks: Path, frames: int) -> str:
+        """mIoU / accuracy of one click per person on the backend's encoding of masked frames (SEGMENTER_FRAMES per
+        camera), the best of the candidate masks, and the grid's ceiling."""
         backend = BuiltinSamBackend()
         grid = backend.grid_size
         results: Dict[str, List[Tuple[float, ...]]] = {}
+        chosen = sorted({round(k) for k in np.linspace(0, frames - 1, min(frames, SEGMENTER_FRAMES))})
         for camera in sorted(folder.name for folder in masks.iterdir() if folder.is_dir()):
-            for frame in range(frames):
-                image = self.capture / f"Basketball_undist_{frame:05d}_{camera}.png"
-                embedding = backend.encode(np.asarray(Image.open(image).convert("RGB")))
+            for frame, rgb in capture.frames(camera, chosen).items():
+                embedding = backend.encode(rgb)
                 for person in people(masks / camera / f"{frame:05d}.png"):
                     mask, _ = backend.decode(embedding, np.array([deepest_pixel(person)]), np.array([1]))
                     cells = mask_cells(person, grid)
@@ -136,7 +204,7 @@ class RealTrackingBenchmark:
                     )  # fmt: skip
         everything = [value for values in results.values() for value in values]
         rows = [
-            f"SAM backend `{backend.name}` on the real frames ({len(results)} masked cameras x {frames} frames, "
+            f"SAM backend `{backend.name}` on the real frames ({len(results)} masked cameras x {len(chosen)} frames, "
             f"{len(everything)} person clicks):",
             "",
             "| cameras | clicks | mIoU | Acc. | median IoU | IoU >= 0.5 | best of the masks | grid ceiling |",
@@ -158,25 +226,25 @@ class RealTrackingBenchmark:
         ]
         return "\n".join(rows)
 
-    def train(self) -> Path:
+    def train(self, capture: Capture) -> Path:
         runs = self.output / "runs"
         runs.mkdir(parents=True, exist_ok=True)
         ns(
             "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
             "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
             "--machine.device-type", "cpu", "--machine.seed", str(self.seed), "--vis", "tensorboard",
-            "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"), "technicolor-data", "--data",
-            str(self.capture), "--near", "0.3", "--far", "7", "--held-out-camera", self.held_out, "--cache-dir",
-            str(self.output / "frames"), log=runs / "train.log",
+            "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
+            *capture.dataparser(self.held_out, self.downscale, self.frame_count),
+            "--cache-dir", str(self.output / "frames"), log=runs / "train.log",
         )  # fmt: skip
         return runs / "tracking" / self.method / "run" / "config.yml"
 
 
 def score(
     folder: Path, summary: Dict, held_out: List[List[np.ndarray]], click_time: float
-) -> Dict[float, Tuple[float, float]]:
+) -> Tuple[Dict[float, Tuple[float, float]], Dict[int, np.ndarray]]:
     """IoU and accuracy of every tracked mask against the clicked person's component in the held-out camera,
-    whose person components per frame are `held_out`."""
+    whose person components per frame are `held_out`, by time; and that component, by frame."""
     frames = len(held_out)
     click_frame = round(click_time * (frames - 1))
     x, y = next(r for r in summary["masks"] if r["time"] == click_time)["prompt"]["points"][0]
@@ -191,7 +259,25 @@ def score(
         predicted = np.asarray(Image.open(folder / record["mask"])) > 0
         target = person[round(record["time"] * (frames - 1))]
         scores[record["time"]] = (iou(predicted, target), accuracy(predicted, target))
-    return scores
+    return scores, person
+
+
+def write_overlay(
+    path: Path, capture: Capture, camera: str, folder: Path, summary: Dict, truth: Dict[int, np.ndarray]
+) -> None:
+    """OVERLAY_FRAMES held-out frames side by side: the tracked mask in red over the frame, the true person's outline
+    in green."""
+    frames = len(truth)
+    records = {round(r["time"] * (frames - 1)): r for r in summary["masks"]}
+    chosen = sorted({round(k) for k in np.linspace(0, frames - 1, OVERLAY_FRAMES)} & set(records))
+    tiles = []
+    for frame, rgb in capture.frames(camera, chosen).items():
+        predicted = np.asarray(Image.open(folder / records[frame]["mask"])) > 0
+        tile = np.asarray(Image.fromarray(rgb).resize(predicted.shape[::-1], Image.BILINEAR)).astype(np.float64)
+        tile[predicted] = 0.5 * tile[predicted] + [127.5, 0.0, 0.0]
+        tile[truth[frame] & ~ndimage.binary_erosion(truth[frame], iterations=2)] = [0.0, 255.0, 0.0]
+        tiles.append(tile.astype(np.uint8))
+    Image.fromarray(np.concatenate(tiles, axis=1)).save(path)
 
 
 if __name__ == "__main__":

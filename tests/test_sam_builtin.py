@@ -19,7 +19,7 @@ from scipy import ndimage
 
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.config import BuiltinSamConfig
-from gear_nerfstudio.sam.interface import Embedding, valid_grid
+from gear_nerfstudio.sam.interface import Embedding, cell_centres, valid_grid
 from gear_nerfstudio.tools.synthetic.scene import SyntheticScene
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
 
@@ -141,6 +141,46 @@ def test_rendered_like_features(backend, scenes):
             masks, _ = backend.decode(perturbed(embedding, index), interior_pixel(truth), np.array([1]))
             ious.append(iou(masks[0], truth))
     assert np.mean(ious) > 0.65, ious
+
+
+def test_box_alone_keeps_the_object_at_its_centre_when_the_object_reaches_past_it(backend):
+    """A box around the left part of an object (as tracking prompts with the last frame's box once the object has
+    grown or moved past it), with a small blob of another colour inside: the mask is the object's part inside the
+    box, not the blob, which alone lies wholly inside the box (tracking on the real capture shrank to such slivers
+    frame after frame)."""
+    raw = np.zeros((64, 64, 16))
+    raw[:48, :, 0] = 1.0  # background of a 64x48 image, one pixel per cell
+    raw[10:40, 10:50] = 0.0
+    raw[10:40, 10:50, 1] = 1.0  # the object
+    raw[20:22, 14:16] = 0.0
+    raw[20:22, 14:16, 2] = 1.0  # the blob
+    embedding = Embedding(np.einsum("kr,hwr->khw", backend._projection, raw).astype(np.float32), (48, 64))
+    masks, _ = backend.decode(embedding, box=np.array([10.0, 10.0, 26.0, 40.0]))
+    expected = np.zeros((48, 64), dtype=bool)
+    expected[10:40, 10:26] = True
+    expected[20:22, 14:16] = False
+    assert iou(masks[0], expected) > 0.9
+
+
+def test_depth_cue_separates_an_object_of_the_background_colour(backend):
+    """A shirt of exactly the wall's shading, with trousers below it, in front of the wall (depth 2 against 5): the
+    features alone cannot tell the shirt from the wall, the rendered depth at the cells (`Embedding.depth`) can."""
+    rgb = np.repeat(np.repeat(np.linspace(120, 170, 160)[None, :, None], 120, axis=0), 3, axis=2)
+    shirt, trousers = np.zeros((120, 160), dtype=bool), np.zeros((120, 160), dtype=bool)
+    shirt[30:70, 60:100], trousers[70:110, 66:94] = True, True
+    rgb[trousers] = 50.0
+    encoded = backend.encode(rgb.astype(np.uint8))
+    depth = np.where(shirt | trousers, 2.0, 5.0)
+    centres = cell_centres(encoded.image_size, backend.grid_size).numpy().astype(int)
+    cells = np.zeros((backend.grid_size, backend.grid_size), dtype=np.float32)
+    cells[: centres.shape[0], : centres.shape[1]] = depth[centres[..., 1], centres[..., 0]]
+    click = np.array([[80.5, 50.5]])
+    without, _ = backend.decode(encoded, click, np.array([1]))
+    with_depth, _ = backend.decode(Embedding(encoded.features, encoded.image_size, cells), click, np.array([1]))
+    assert iou(without[0], shirt) < 0.2  # the shirt joins the wall
+    assert iou(with_depth[0], shirt) > 0.75
+    with pytest.raises(ValueError, match="depth cue of shape"):
+        backend.decode(Embedding(encoded.features, encoded.image_size, cells[:10]), click, np.array([1]))
 
 
 def test_negative_and_multiple_points(backend, scenes):

@@ -15,19 +15,56 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 import torch
+from scipy import ndimage
 from torch import Tensor
 
 
 @dataclass
 class Embedding:
-    """An image embedding: features (C, G, G) over the padded square of an image of image_size (H, W)."""
+    """An image embedding: features (C, G, G) over the padded square of an image of image_size (H, W).
+
+    ``depth`` (G, G), optional: the radiance field's rendered depth at the centres of the cells that cover the
+    image (see `valid_grid`; the rest is ignored). It is a cue that a decoder may use (the built-in stand-in
+    does) or ignore (SAM does): embeddings rendered from the field carry it, encoded images do not.
+    """
 
     features: np.ndarray
     image_size: Tuple[int, int]
+    depth: Optional[np.ndarray] = None
 
     @property
     def grid_size(self) -> int:
         return int(self.features.shape[-1])
+
+
+CUE_FEATURE_NORM = 0.75
+"""Median norm that cell features are scaled to before the log depth goes beside them (`with_depth_cue`)."""
+
+
+def log_depth(embedding: Embedding) -> Optional[np.ndarray]:
+    """Log of an embedding's depth cue on its valid cells (rows, cols), after a 3 x 3 median that removes the
+    isolated stray depths of rays that slip through a surface and keeps depth edges in place; rays that meet
+    nothing (an infinite or undefined depth) count as at the furthest depth of the map. None without a depth."""
+    if embedding.depth is None:
+        return None
+    rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
+    depth = np.asarray(embedding.depth[:rows, :cols], dtype=np.float64)
+    finite = np.isfinite(depth)
+    depth = np.where(finite, depth, depth[finite].max() if finite.any() else 1.0)
+    depth = ndimage.median_filter(depth, size=3, mode="nearest")
+    return np.log(np.maximum(depth, 1e-6))
+
+
+def with_depth_cue(features: np.ndarray, embedding: Embedding) -> np.ndarray:
+    """Features (rows, cols, C) of an embedding's valid cells with its depth cue beside them: scaled to a median
+    norm of CUE_FEATURE_NORM, with the log depth as one more channel, so that a depth ratio of e (a person two
+    units in front of a wall five units away is a ratio of 2.5) weighs as much as a typical feature. Unchanged
+    when the embedding has no depth."""
+    depth = log_depth(embedding)
+    if depth is None:
+        return features
+    scale = CUE_FEATURE_NORM / max(float(np.median(np.linalg.norm(features, axis=-1))), 1e-12)
+    return np.concatenate([features * scale, depth[..., None]], axis=-1)
 
 
 def cells_per_pixel(image_size: Tuple[int, int], grid_size: int) -> float:

@@ -29,7 +29,7 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gear_nerfstudio.model.gear_model import evaluating
-from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, valid_grid
+from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, valid_grid, with_depth_cue
 from gear_nerfstudio.tracking.metrics import iou
 from gear_nerfstudio.tracking.click import TrackingError, check_time, image_size, single_camera
 
@@ -59,13 +59,14 @@ def _render(model: "Model", camera: Cameras, time: float, pixels: Tensor) -> Dic
     """Model outputs for rays through pixel coordinates (..., 2) = (x, y) of a camera at a time."""
     camera = single_camera(camera, time).to(model.device)
     rays = camera.generate_rays(camera_indices=0, coords=pixels[..., [1, 0]].to(model.device))
-    with evaluating(model), model.rendering("sam"):
+    with evaluating(model), model.rendering("sam", "depth"):
         return model.get_outputs_for_camera_ray_bundle(rays)
 
 
 def render_embedding(model: "Model", camera: Cameras, time: float, backend: SamBackend) -> Embedding:
     """SAM features rendered by the model (Eq 8) at the centres of the backend's grid cells that cover
-    the image, zero on the padding cells: an Embedding that the backend's decoder accepts."""
+    the image, zero on the padding cells: an Embedding that the backend's decoder accepts, with the depth
+    rendered at the same cells (`Embedding.depth`, the decoder's depth cue)."""
     time = check_time(time)
     sam_dim = getattr(getattr(model, "config", None), "sam_dim", backend.embedding_dim)
     if sam_dim != backend.embedding_dim:
@@ -75,11 +76,13 @@ def render_embedding(model: "Model", camera: Cameras, time: float, backend: SamB
         )
     size = image_size(camera)
     centres = cell_centres(size, backend.grid_size)  # (rows, cols, 2)
-    rendered = _render(model, camera, time, centres)["sam"]  # (rows, cols, C)
+    outputs = _render(model, camera, time, centres)
     rows, cols = centres.shape[:2]
     features = np.zeros((backend.embedding_dim, backend.grid_size, backend.grid_size), dtype=np.float32)
-    features[:, :rows, :cols] = rendered.detach().cpu().float().permute(2, 0, 1).numpy()
-    return Embedding(features=features, image_size=size)
+    features[:, :rows, :cols] = outputs["sam"].detach().cpu().float().permute(2, 0, 1).numpy()
+    depth = np.zeros((backend.grid_size, backend.grid_size), dtype=np.float32)
+    depth[:rows, :cols] = outputs["depth"][..., 0].detach().cpu().float().numpy()
+    return Embedding(features=features, image_size=size, depth=depth)
 
 
 def render_rgb(model: "Model", camera: Cameras, time: float) -> np.ndarray:
@@ -142,9 +145,11 @@ def mask_cells(mask: np.ndarray, grid_size: int) -> np.ndarray:
 
 
 def valid_cell_features(embedding: Embedding) -> np.ndarray:
-    """Features (rows * cols, C) of the cells that cover the image, row-major (as `cell_centres`)."""
+    """Features (rows * cols, C) of the cells that cover the image, row-major (as `cell_centres`), with the
+    embedding's depth cue beside them when it has one (`with_depth_cue`)."""
     rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
-    return embedding.features[:, :rows, :cols].reshape(embedding.features.shape[0], -1).T
+    features = embedding.features[:, :rows, :cols].transpose(1, 2, 0).astype(np.float64)
+    return with_depth_cue(features, embedding).reshape(rows * cols, -1)
 
 
 def _sample(features: np.ndarray, count: int) -> np.ndarray:
@@ -167,7 +172,7 @@ class ObjectAppearance:
     @staticmethod
     def of(embedding: Embedding, mask: np.ndarray) -> Optional["ObjectAppearance"]:
         """From the clicked-time embedding and mask; None when the mask holds no cell or every cell."""
-        features = valid_cell_features(embedding).astype(np.float64)
+        features = valid_cell_features(embedding)
         inside = mask_cells(mask, embedding.grid_size).reshape(-1)
         if inside.all() or not inside.any():
             return None
@@ -178,7 +183,7 @@ class ObjectAppearance:
     def cells(self, embedding: Embedding) -> Tuple[np.ndarray, np.ndarray]:
         """Object cells (rows, cols) bool of another embedding, and every cell's squared distance to its
         nearest object feature."""
-        features = valid_cell_features(embedding).astype(np.float64)
+        features = valid_cell_features(embedding)
 
         def nearest(reference: np.ndarray) -> np.ndarray:
             squared = (features**2).sum(1)[:, None] + (reference**2).sum(1)[None] - 2.0 * features @ reference.T
