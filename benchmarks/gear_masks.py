@@ -7,8 +7,8 @@ pixel sees, ``GearNeRFModel.visible_gear_levels``).
 
 The held-out camera of ``panoptic-video`` (cam00) has no masks, so ``speed_accuracy.py`` cannot score its gear maps;
 this scores training cameras instead, rendered at a quarter of their size, or with ``--held-out`` the held-out
-camera of a run that held out one with masks (``tracking_real.py`` holds out cam20 of the 31-camera capture). Masks are ``<camera>/<frame:05d>.png``,
-numbered within the loaded window. It measures; it changes nothing.
+camera of a run that held out one with masks (``tracking_real.py`` holds out cam20 of the 31-camera capture).
+Masks are ``<camera>/<frame:05d>.png``, numbered within the loaded window. It measures; it changes nothing.
 """
 
 from __future__ import annotations

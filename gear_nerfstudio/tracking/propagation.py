@@ -6,8 +6,9 @@ The target view's SAM feature map is rendered from the 4D embedding (Eq 8) and d
 prompts the decoder on the rendered features at the neighbouring frame t + 1 (or t - 1), frame by frame.
 
 Propagation "embedding" (ours, the default) checks each box result with the 4D embedding. The object's
-appearance is the set of rendered SAM features of the cells under the clicked-time mask, against those of
-the rest of the view (`ObjectAppearance`); at t + 1 the cells nearer to an object feature than to any
+appearance is the set of rendered SAM features of the cells under the clicked-time mask, with the rendered
+depth beside them (the depth cue, `interface.with_depth_cue`), against those of the rest of the view
+(`ObjectAppearance`); at t + 1 the cells nearer to an object feature than to any
 background feature form regions, and the region that overlaps the box's mask (else the best-matching one)
 is the object (`object_region`). When the box's mask and that region disagree (IoU of their cells below
 AGREEMENT), the decoder is prompted again with points spread over the region and the region's own box
