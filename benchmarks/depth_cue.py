@@ -20,12 +20,11 @@ from typing import List
 import numpy as np
 import torch
 import tyro
-from PIL import Image
 
 from gear_nerfstudio.sam.interface import Embedding
 from gear_nerfstudio.tracking.metrics import iou
 from gear_nerfstudio.tracking.propagation import render_embedding
-from tracking_real import deepest_pixel, people
+from tracking_real import deepest_pixel, people, shrink
 
 
 @dataclasses.dataclass
@@ -53,9 +52,8 @@ class DepthCueBenchmark:
             chosen = {round(k) for k in np.linspace(0, num_frames - 1, min(self.frames, num_frames))}
             scores, renders, decodes, views = [], [], [[], []], 0
             for index, (camera_id, frame_id) in enumerate(zip(metadata["camera_ids"], metadata["frame_ids"])):
-                name = metadata["camera_names"][int(camera_id)]
-                mask_file = masks / name / f"{metadata['frame_numbers'][int(frame_id)]:05d}.png"
-                if int(frame_id) not in chosen or not mask_file.exists():
+                name, number = metadata["camera_names"][int(camera_id)], metadata["frame_numbers"][int(frame_id)]
+                if int(frame_id) not in chosen or not (masks / name / f"{number:05d}.png").exists():
                     continue
                 camera = dataset.cameras[index : index + 1]
                 started = time.perf_counter()
@@ -63,10 +61,8 @@ class DepthCueBenchmark:
                 renders.append(time.perf_counter() - started)
                 views += 1
                 alone = Embedding(rendered.features, rendered.image_size)
-                for person in people(mask_file):
-                    if person.shape != rendered.image_size:  # a run trained on downscaled frames
-                        size = (rendered.image_size[1], rendered.image_size[0])
-                        person = np.asarray(Image.fromarray(person).resize(size, Image.NEAREST))
+                for person in people(masks, name, number):
+                    person = shrink(person, person.shape[0] // rendered.image_size[0])  # a run on downscaled frames
                     click = np.array([deepest_pixel(person)])
                     row = []
                     for which, embedding in enumerate((alone, rendered)):

@@ -46,6 +46,7 @@ from gear_nerfstudio.sam.interface import cells_per_pixel
 from gear_nerfstudio.tracking.metrics import accuracy, iou
 from gear_nerfstudio.tracking.propagation import mask_cells
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
+from speed_accuracy import read_mask
 from tracking import PROPAGATIONS, mean, ns, pct, per_time_table, track_click, write_report
 
 CAPTURE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "panoptic_basketball"
@@ -58,9 +59,9 @@ OVERLAY_FRAMES = 5
 """Held-out frames, evenly spread, in each overlay picture."""
 
 
-def people(mask_file: Path) -> List[np.ndarray]:
-    """The person components (H, W) bool of a foreground mask (8-bit or 1-bit), largest first."""
-    labels, count = ndimage.label(np.asarray(Image.open(mask_file).convert("L")) > 127)
+def people(masks: Path, camera: str, frame: int) -> List[np.ndarray]:
+    """The person components (H, W) bool of a camera's foreground mask at a frame (`read_mask`), largest first."""
+    labels, count = ndimage.label(read_mask(masks, camera, frame))
     sizes = np.bincount(labels.ravel(), minlength=count + 1)[1:]
     return [labels == index + 1 for index in np.argsort(-sizes) if sizes[index] >= PERSON_SHARE * labels.size]
 
@@ -83,9 +84,14 @@ class Capture:
             return {index: np.asarray(Image.open(file).convert("RGB")) for index, file in files.items()}
         import av
 
+        frames = {}
         with av.open(str(self.folder / f"{camera}.mp4")) as container:
-            decoded = enumerate(container.decode(video=0))
-            return {number: frame.to_ndarray(format="rgb24") for number, frame in decoded if number in indices}
+            for number, frame in enumerate(container.decode(video=0)):
+                if number > max(indices):  # decode no further than the last frame asked for
+                    break
+                if number in indices:
+                    frames[number] = frame.to_ndarray(format="rgb24")
+        return frames
 
     def dataparser(self, held_out: str, downscale: int, frame_count: Optional[int]) -> List[str]:
         """The dataparser's subcommand and options for this capture with `held_out` held out, frames downscaled by
@@ -144,9 +150,9 @@ class RealTrackingBenchmark:
         config = self.config or self.train(capture)
         trained = time.time()
         click_time = self.click_frame / (frames - 1)
-        clicked_people = people(masks / self.click_camera / f"{self.click_frame:05d}.png")
+        clicked_people = people(masks, self.click_camera, self.click_frame)
         held_out = [
-            [shrink(person, self.downscale) for person in people(masks / self.held_out / f"{frame:05d}.png")]
+            [shrink(person, self.downscale) for person in people(masks, self.held_out, frame)]
             for frame in range(frames)
         ]
         lines += [
@@ -194,7 +200,7 @@ class RealTrackingBenchmark:
         for camera in sorted(folder.name for folder in masks.iterdir() if folder.is_dir()):
             for frame, rgb in capture.frames(camera, chosen).items():
                 embedding = backend.encode(rgb)
-                for person in people(masks / camera / f"{frame:05d}.png"):
+                for person in people(masks, camera, frame):
                     mask, _ = backend.decode(embedding, np.array([deepest_pixel(person)]), np.array([1]))
                     cells = mask_cells(person, grid)
                     ceiling = backend.upsample(cells, person.shape, cells_per_pixel(person.shape, grid))

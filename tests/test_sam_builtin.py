@@ -19,9 +19,10 @@ from scipy import ndimage
 
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.config import BuiltinSamConfig
-from gear_nerfstudio.sam.interface import Embedding, cell_centres, valid_grid
+from gear_nerfstudio.sam.interface import Embedding, valid_grid
 from gear_nerfstudio.tools.synthetic.scene import SyntheticScene
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
+from tests.test_tracking import with_true_depth
 
 Frame = Tuple[np.ndarray, np.ndarray]  # rgb (H, W, 3), object ids (H, W)
 
@@ -170,17 +171,14 @@ def test_depth_cue_separates_an_object_of_the_background_colour(backend):
     shirt[30:70, 60:100], trousers[70:110, 66:94] = True, True
     rgb[trousers] = 50.0
     encoded = backend.encode(rgb.astype(np.uint8))
-    depth = np.where(shirt | trousers, 2.0, 5.0)
-    centres = cell_centres(encoded.image_size, backend.grid_size).numpy().astype(int)
-    cells = np.zeros((backend.grid_size, backend.grid_size), dtype=np.float32)
-    cells[: centres.shape[0], : centres.shape[1]] = depth[centres[..., 1], centres[..., 0]]
+    rendered = with_true_depth(encoded, np.where(shirt | trousers, 2.0, 5.0))
     click = np.array([[80.5, 50.5]])
     without, _ = backend.decode(encoded, click, np.array([1]))
-    with_depth, _ = backend.decode(Embedding(encoded.features, encoded.image_size, cells), click, np.array([1]))
+    with_depth, _ = backend.decode(rendered, click, np.array([1]))
     assert iou(without[0], shirt) < 0.2  # the shirt joins the wall
     assert iou(with_depth[0], shirt) > 0.75
     with pytest.raises(ValueError, match="depth cue of shape"):
-        backend.decode(Embedding(encoded.features, encoded.image_size, cells[:10]), click, np.array([1]))
+        backend.decode(Embedding(encoded.features, encoded.image_size, rendered.depth[:10]), click, np.array([1]))
 
 
 def test_negative_and_multiple_points(backend, scenes):
