@@ -3,8 +3,9 @@
 # CUDA and most of nerfstudio's dependencies but not nerfstudio, and no network.
 #
 #   bash benchmarks/gpu_env.sh pack    here: the missing packages, as Python 3.12 / x86-64 files, into
-#                                      .device_site/site.tar.xz (xz: the wheels themselves are over the 64 MiB that a
-#                                      call carries, with the video), and the real capture into .device_site/real
+#                                      .device_site/site.tar.xz (xz, and without the parts that nothing here runs:
+#                                      a call carries 64 MiB with the working tree), and the real capture with the
+#                                      masks tracking_real.py needs into .device_site/real
 #   bash benchmarks/gpu_env.sh setup   there (carry .device_site): unpack into /tmp/site, install this checkout
 #                                      into it (so that nerfstudio finds the plugin's entry points), and put the
 #                                      capture, if packed, where the benchmarks look (../shared/data/real); then
@@ -25,13 +26,26 @@ case "${1:-}" in
     .venv/bin/python -m pip install -q --no-deps --no-compile --target .device_site/site --implementation cp \
       --python-version 3.12 --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
       --platform manylinux1_x86_64 --only-binary=:all: "${PACKAGES[@]}"
+    # Not needed to train, track or evaluate, and over the size a call carries with the working tree: gsplat's
+    # CUDA sources (splatfacto only), tensorly's sample data, the viewer client's sources.
+    rm -rf .device_site/site/gsplat/cuda/csrc .device_site/site/tensorly/datasets/data \
+      .device_site/site/viser/client/node_modules .device_site/site/viser/client/src
     tar cf - -C .device_site site | xz -9 -T2 >.device_site/site.tar.xz && rm -rf .device_site/site
     cp -r ../shared/data/real/panoptic_basketball_video .device_site/real/
+    # The masks of the cameras that tracking_real.py clicks in and tracks into (cam13, cam20).
+    mkdir -p .device_site/real/panoptic_basketball_video_masks
+    cp -r ../shared/data/real/panoptic_basketball_video_masks/cam{13,20} .device_site/real/panoptic_basketball_video_masks/
     du -sh .device_site/*
     ;;
   setup)
     python3 -c "import tarfile; tarfile.open('.device_site/site.tar.xz').extractall('/tmp', filter='data')"
     python3 -m pip install -q --upgrade --no-deps --no-build-isolation --no-index --no-compile --target /tmp/site .
+    # pip --target writes no console scripts: the ns-* commands that the benchmarks run, as modules (-P: not the
+    # checkout's own gear_nerfstudio folder, which lacks the installed package's method_configs and data_parsers).
+    mkdir -p /tmp/site/bin
+    printf '#!/bin/sh\nexec python3 -P -m nerfstudio.scripts.train "$@"\n' >/tmp/site/bin/ns-train
+    printf '#!/bin/sh\nexec python3 -P -m gear_nerfstudio.tracking.cli "$@"\n' >/tmp/site/bin/ns-gear-track
+    chmod +x /tmp/site/bin/ns-train /tmp/site/bin/ns-gear-track
     if [ -d .device_site/real ]; then mkdir -p ../shared/data/real && cp -r .device_site/real/* ../shared/data/real/; fi
     ;;
   *)

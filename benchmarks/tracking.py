@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -28,7 +29,7 @@ import numpy as np
 import tyro
 from scipy import ndimage
 
-from environment import BIN, command_environment
+from environment import command_environment
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
@@ -190,14 +191,14 @@ def write_report(path: Path, table: List[str], per_time: List[str], timing: str)
 
 def track_click(
     config: Path, folder: Path, camera: str, click_time: float, pixel: Tuple[float, float], target: str,
-    propagation: str, video: bool = True,
+    propagation: str, video: bool = True, log: Optional[Path] = None,
 ) -> Dict:
     """`ns-gear-track` of one positive click at `pixel` of `camera` into the `target` camera(s), written to
-    `folder` (with its overlay videos when `video`); returns its tracking.json."""
+    `folder` (with its overlay videos when `video`; its output to `log` when given); returns its tracking.json."""
     ns(
         "ns-gear-track", "--load-config", str(config), "--output-dir", str(folder), "--overwrite", "--click-camera",
         camera, "--click-time", str(click_time), "--positive", str(pixel[0]), str(pixel[1]), "--target-cameras",
-        target, "--propagation", propagation, "--video" if video else "--no-video",
+        target, "--propagation", propagation, "--video" if video else "--no-video", log=log,
     )  # fmt: skip
     return json.loads((folder / "tracking.json").read_text())
 
@@ -217,13 +218,15 @@ def per_time_table(
 
 
 def ns(*args: str, log: Optional[Path] = None) -> None:
-    """Run one of the environment's ns-* commands; its output goes to `log` when given."""
-    command = [str(BIN / args[0]), *args[1:]]
+    """Run one of the environment's ns-* commands (the virtual environment's, else the first on PATH: where a
+    package folder's scripts are not beside the interpreter); its output goes to `log` when given."""
+    environment = command_environment()
+    command = [shutil.which(args[0], path=environment["PATH"]) or args[0], *args[1:]]
     if log is None:
-        subprocess.run(command, check=True, env=command_environment())
+        subprocess.run(command, check=True, env=environment)
         return
     with open(log, "w") as handle:
-        subprocess.run(command, check=True, env=command_environment(), stdout=handle, stderr=subprocess.STDOUT)
+        subprocess.run(command, check=True, env=environment, stdout=handle, stderr=subprocess.STDOUT)
 
 
 def pct(value: Optional[float]) -> str:

@@ -32,9 +32,10 @@ Prints a markdown table and writes it to `<output>/tracking_real.md`.
 from __future__ import annotations
 
 import dataclasses
+import subprocess
 import time
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 import tyro
@@ -138,9 +139,14 @@ class RealTrackingBenchmark:
     size."""
     frame_count: Optional[int] = None
     """Train on the first this many frames (the dataparser's --frame-count); all by default."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Where `ns-train` trains (`--machine.device-type`); tracking uses the GPU when there is one."""
+    rays_per_batch: Optional[int] = None
+    """Training rays per iteration; the preset's by default."""
 
     def main(self) -> None:
         started = time.time()
+        self.output.mkdir(parents=True, exist_ok=True)
         masks = self.capture.parent / f"{self.capture.name}_masks"
         frames = len(list((masks / self.held_out).glob("*.png")))
         frames = frames if self.frame_count is None else min(frames, self.frame_count)
@@ -163,14 +169,22 @@ class RealTrackingBenchmark:
             "| person | propagation | mIoU | Acc. | t-mIoU | t-Acc. |",
             "|---|---|---|---|---|---|",
         ]
-        details = []
+        details, refusals = [], []
         for index, person in enumerate(clicked_people):
             x, y = (value / self.downscale for value in deepest_pixel(person))
             for propagation in PROPAGATIONS:
                 folder = self.output / f"track_person{index}_{propagation}"
-                summary = track_click(
-                    config, folder, self.click_camera, click_time, (x, y), self.held_out, propagation, video=False
-                )
+                log = self.output / f"track_person{index}_{propagation}.log"
+                try:
+                    summary = track_click(
+                        config, folder, self.click_camera, click_time, (x, y), self.held_out, propagation, False, log
+                    )
+                except subprocess.CalledProcessError:
+                    # A refused click is a failed track: no mask at any time.
+                    lines.append(f"| {index} (click {x:.1f}, {y:.1f}) | {propagation} | 0.0 | n/a | 0.0 | n/a |")
+                    refusals.append(f"- person {index}, {propagation}: IoU 0 at every time, `ns-gear-track` refused "
+                                    f"the click: {refusal(log)}")  # fmt: skip
+                    continue
                 scores, truth = score(folder, summary, held_out, click_time)
                 write_overlay(self.output / f"overlay_person{index}_{propagation}.png", capture, self.held_out, folder,
                               summary, truth)  # fmt: skip
@@ -184,7 +198,7 @@ class RealTrackingBenchmark:
                 details += per_time_table(f"person {index}, {propagation}", summary["masks"], scores, 3)
         tracked = time.time()
         write_report(
-            self.output / "tracking_real.md", lines, details,
+            self.output / "tracking_real.md", lines + ([""] if refusals else []) + refusals, details,
             f"Segmenter on frames {segmented - started:.0f} s, training {trained - segmented:.0f} s (0 when "
             f"--config is given), tracking ({len(clicked_people) * len(PROPAGATIONS)} ns-gear-track runs) "
             f"{tracked - trained:.0f} s, wall clock.",
@@ -235,15 +249,24 @@ class RealTrackingBenchmark:
     def train(self, capture: Capture) -> Path:
         runs = self.output / "runs"
         runs.mkdir(parents=True, exist_ok=True)
+        option = "--pipeline.datamanager.train-num-rays-per-batch"
+        rays = [] if self.rays_per_batch is None else [option, str(self.rays_per_batch)]
         ns(
             "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
             "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
-            "--machine.device-type", "cpu", "--machine.seed", str(self.seed), "--vis", "tensorboard",
+            "--machine.device-type", self.device, "--machine.seed", str(self.seed), "--vis", "tensorboard", *rays,
             "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
             *capture.dataparser(self.held_out, self.downscale, self.frame_count),
             "--cache-dir", str(self.output / "frames"), log=runs / "train.log",
         )  # fmt: skip
         return runs / "tracking" / self.method / "run" / "config.yml"
+
+
+def refusal(log: Path) -> str:
+    """The error that a command wrote to its log: its lines from the one with "error:" on, joined."""
+    lines = log.read_text().splitlines()
+    start = next((k for k, line in enumerate(lines) if "error:" in line), len(lines) - 1)
+    return " ".join(line.strip() for line in lines[start:])
 
 
 def score(

@@ -15,11 +15,12 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 import pytest
+import torch
 from scipy import ndimage
 
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.config import BuiltinSamConfig
-from gear_nerfstudio.sam.interface import Embedding, valid_grid
+from gear_nerfstudio.sam.interface import Embedding, cell_depth, valid_grid
 from gear_nerfstudio.tools.synthetic.scene import SyntheticScene
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
 from tests.test_tracking import with_true_depth
@@ -164,8 +165,10 @@ def test_box_alone_keeps_the_object_at_its_centre_when_the_object_reaches_past_i
 
 
 def test_depth_cue_separates_an_object_of_the_background_colour(backend):
-    """A shirt of exactly the wall's shading, with trousers below it, in front of the wall (depth 2 against 5): the
-    features alone cannot tell the shirt from the wall, the rendered depth at the cells (`Embedding.depth`) can."""
+    """A shirt of exactly the wall's shading, with dark trousers below it, in front of the wall (depth 2 against 5):
+    the features alone cannot tell the shirt from the wall; with the rendered depth at the cells (`Embedding.depth`)
+    a click on the shirt gives the person, the trousers joined to the shirt because together they stand in front of
+    the wall all round."""
     rgb = np.repeat(np.repeat(np.linspace(120, 170, 160)[None, :, None], 120, axis=0), 3, axis=2)
     shirt, trousers = np.zeros((120, 160), dtype=bool), np.zeros((120, 160), dtype=bool)
     shirt[30:70, 60:100], trousers[70:110, 66:94] = True, True
@@ -176,9 +179,49 @@ def test_depth_cue_separates_an_object_of_the_background_colour(backend):
     without, _ = backend.decode(encoded, click, np.array([1]))
     with_depth, _ = backend.decode(rendered, click, np.array([1]))
     assert iou(without[0], shirt) < 0.2  # the shirt joins the wall
-    assert iou(with_depth[0], shirt) > 0.75
+    assert iou(with_depth[0], shirt | trousers) > 0.75
     with pytest.raises(ValueError, match="depth cue of shape"):
         backend.decode(Embedding(encoded.features, encoded.image_size, rendered.depth[:10]), click, np.array([1]))
+
+
+def test_depth_cue_joins_the_parts_of_a_person_but_not_the_rug_they_stand_on(backend):
+    """A person (a shirt of the wall's shade, dark trousers) standing on a rug on a floor that recedes to the wall
+    and meets it without a depth step: a click on the shirt joins the trousers, but not the rug, though the feet
+    touch it at its depth: the rug goes on into the floor, so with it the mask's outline would be less in front of
+    what surrounds it."""
+    wall = np.repeat(np.repeat(np.linspace(120, 170, 160)[None, :, None], 120, axis=0), 3, axis=2)
+    rows = np.arange(120)[:, None].repeat(160, axis=1).astype(np.float64)
+    depth = np.where(rows < 60, 6.0, 6.0 - (rows - 60) / 60 * 4.0)  # wall, then the floor coming nearer
+    shirt, trousers = np.zeros((120, 160), dtype=bool), np.zeros((120, 160), dtype=bool)
+    shirt[30:70, 60:100], trousers[70:100, 66:94] = True, True
+    rgb = np.where(rows[..., None] < 60, wall, 90.0)
+    rug = np.zeros((120, 160), dtype=bool)
+    rug[100:110, 20:140] = True
+    rgb[shirt], rgb[trousers], rgb[rug] = wall[shirt], 40.0, 65.0
+    depth[shirt | trousers] = 6.0 - (100 - 60) / 60 * 4.0  # where the feet stand
+    encoded = backend.encode(rgb.astype(np.uint8))
+    masks, _ = backend.decode(with_true_depth(encoded, depth), np.array([[80.5, 50.5]]), np.array([1]))
+    assert iou(masks[0], shirt | trousers) > 0.75
+    assert np.count_nonzero(masks[0] & rug) < 0.2 * np.count_nonzero(rug)
+
+
+def test_depth_map_at_another_resolution_gives_the_cue_at_the_cells(backend):
+    """The gear updates' path: a depth map rendered at the loss map's size (here 128 x 96 for a 160 x 120 image)
+    becomes the cue at the cells (`cell_depth`, nearest pixel: an edge stays an edge, the padding stays zero) and
+    separates the shirt of the wall's colour as the depth at the cells does."""
+    rgb = np.repeat(np.repeat(np.linspace(120, 170, 160)[None, :, None], 120, axis=0), 3, axis=2)
+    shirt = np.zeros((120, 160), dtype=bool)
+    shirt[30:70, 60:100] = True
+    encoded = backend.encode(rgb.astype(np.uint8))
+    loss_map_depth = torch.full((96, 128), 5.0)
+    loss_map_depth[24:56, 48:80] = 2.0  # the shirt at 0.8 of the image's size
+    cue = cell_depth(loss_map_depth, encoded.image_size, encoded.grid_size)
+    rows, cols = valid_grid(encoded.image_size, encoded.grid_size)
+    assert cue.shape == (encoded.grid_size, encoded.grid_size) and not cue[rows:].any() and not cue[:, cols:].any()
+    assert set(np.unique(cue[:rows, :cols])) == {2.0, 5.0}
+    with_cue = Embedding(encoded.features, encoded.image_size, cue)
+    masks, _ = backend.decode(with_cue, np.array([[80.5, 50.5]]), np.array([1]))
+    assert iou(masks[0], shirt) > 0.75
 
 
 def test_negative_and_multiple_points(backend, scenes):

@@ -22,6 +22,7 @@ from gear_nerfstudio.tracking.metrics import MaskScore, accuracy, iou, summarise
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding, cell_centres
 from gear_nerfstudio.tools.synthetic.scene import RigCamera, SyntheticScene
+from gear_nerfstudio.sam.occlusion import in_front_share
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for
 from gear_nerfstudio.tracking.click import (
     HIT_ACCUMULATION,
@@ -31,7 +32,6 @@ from gear_nerfstudio.tracking.click import (
     border_share,
     check_click,
     click_point,
-    in_front_share,
     project_prompt,
     view_share,
 )

@@ -35,6 +35,12 @@ class GearUpdateConfig:
     mask_source: Literal["sam", "loss_threshold"] = "sam"
     """'sam': SAM decoder on prompts; 'loss_threshold': RGB loss map above mean + k std (the paper's
     "w/o embedding" ablation)."""
+    depth_cue: bool = False
+    """mask_source 'sam': the decoder also gets the loss map's rendered depth at its cells (`Embedding.depth`, the
+    built-in stand-in's depth cue; SAM ignores it), so that an upshift mask stops at the moving object's outline
+    where its colours match the background's. Off by default: on both real captures (3 seeds each) it put more of
+    the people at gear >= 2 but also more of the static scene, and tracking on the models it trained was no better
+    (benchmarks/results/tracking_real.md, issue 26)."""
     loss_threshold_std: float = 2.0
     """k for mask_source 'loss_threshold'."""
     rays_per_set: int = 4096

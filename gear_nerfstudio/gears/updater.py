@@ -36,6 +36,7 @@ times is measured alike and logged, never used to decide.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Dict, List, Optional, Protocol, Tuple
 
 import numpy as np
@@ -67,7 +68,7 @@ from gear_nerfstudio.gears.schedule import (
     update_interval,
 )
 from gear_nerfstudio.gears.upshift import level_targets, select_points, shift_gears
-from gear_nerfstudio.sam.interface import Embedding, SamBackend, sample_features
+from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_depth, sample_features
 
 
 class UpdateTarget(Protocol):
@@ -318,8 +319,9 @@ class GearUpdater:
             target = sample_features(torch.from_numpy(embedding.features), pixels, embedding.image_size)
             sam_error = (outputs["sam"].reshape(-1, target.shape[-1]) - target.to(self.target.device)).square().sum(-1)
             loss = loss + self.config.sam_loss_weight * sam_error.reshape(size)
+        surface = self.target.visible_surface(camera, outputs)
         return LossMap(
-            image_index, camera, rgb, loss, rgb_loss, self.target.visible_surface(camera, outputs),
+            image_index, camera, rgb, loss, rgb_loss, surface, outputs["depth"][..., 0],
             self.change(image_index, image, self.config.motion_frames), self.change(image_index, image, 2, window=1),
         )  # fmt: skip
 
@@ -333,7 +335,8 @@ class GearUpdater:
     def upshift_mask(self, loss_map: LossMap) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
         """The upshift mask (h, w) of one view and its prompts (x, y), labels in loss-map pixels.
 
-        mask_source 'sam': the SAM decoder on the loss-map prompts and the ground-truth embedding;
+        mask_source 'sam': the SAM decoder on the loss-map prompts and the ground-truth embedding, with the loss
+        map's rendered depth as its depth cue when ``depth_cue`` is on;
         'loss_threshold': the RGB loss map above its mean + k std, without prompts. Either is cut to the
         moving patches (motion gate); with none, the mask is empty and no prompts are made.
         """
@@ -348,6 +351,8 @@ class GearUpdater:
             return torch.zeros(shape, dtype=torch.bool, device=loss_map.loss.device), None, None
         points, labels = patch_prompts(loss_map.loss, config.patch_size, config.top_k, moving)
         embedding = self.views.train_embedding(loss_map.image_index)
+        if config.depth_cue:
+            embedding = replace(embedding, depth=cell_depth(loss_map.depth, embedding.image_size, embedding.grid_size))
         height, width = shape
         scale = np.array([embedding.image_size[1] / width, embedding.image_size[0] / height])
         masks, _ = self.backend.decode(embedding, points=points.cpu().numpy() * scale, labels=labels.numpy().astype(np.int64))

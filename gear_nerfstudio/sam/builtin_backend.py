@@ -23,9 +23,11 @@ Depth cue (issue 26): an embedding rendered from the radiance field carries the 
 (`interface.with_depth_cue`): a depth jump, such as a person's outline against the wall behind, is a
 boundary however alike the colours on both sides, so a click on a grey shirt no longer spreads into the grey
 wall. Thin parts (legs, arms) are kept: the opening that removes leaks along colour boundaries is not made,
-since a depth edge stops them. Parts of one object that differ in colour (shirt and trousers) are still
-separate segments. On the real capture the depth cue raised the mIoU of one click per person on rendered
-training views from 19.7 to 49.7 (benchmarks/results/tracking_real.md).
+since a depth edge stops them. On the real capture the depth cue raised the mIoU of one click per person on
+rendered training views from 19.7 to 49.7 (benchmarks/results/tracking_real.md). Parts of one object that differ
+in colour (shirt and trousers) are still separate segments, so a clicked region is then joined by its
+neighbouring segments at about its depth while that keeps its outline in front of what lies behind it
+(`_joined_by_depth`, with `occlusion.in_front_share`).
 """
 
 from __future__ import annotations
@@ -37,7 +39,16 @@ from PIL import Image
 from scipy import ndimage
 
 from gear_nerfstudio.parallel import available_cores
-from gear_nerfstudio.sam.interface import Embedding, SamBackend, cells_per_pixel, valid_grid, with_depth_cue
+from gear_nerfstudio.sam.interface import (
+    Embedding,
+    SamBackend,
+    cells_per_pixel,
+    log_depth,
+    valid_depth,
+    valid_grid,
+    with_depth_cue,
+)
+from gear_nerfstudio.sam.occlusion import in_front_share
 
 _PIXELS_PER_CELL = 4  # resolution at which the hand-made features are computed
 _SEED = 20240617
@@ -50,6 +61,13 @@ _MEDIAN_NORM = 0.75
 _GRANULARITIES = (1.0, 1.5, 2.25)
 _BOX_SHARES = (0.75, 0.5)
 _BOX_AREA = 0.5
+# Decoder with a depth cue: at most _JOINS neighbouring segments joined to a clicked region, each no larger than
+# _JOIN_SIZE times the region and within _JOIN_DEPTH_BAND of its median log depth, while the union keeps at least
+# _JOIN_IN_FRONT of its outline occluding (`_joined_by_depth`).
+_JOINS = 8
+_JOIN_SIZE = 3.0
+_JOIN_DEPTH_BAND = 0.15
+_JOIN_IN_FRONT = 0.5
 
 
 def _srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
@@ -168,6 +186,7 @@ class BuiltinSamBackend(SamBackend):
         raw = np.einsum("kr,khw->hwr", self._projection, features)
         raw = raw * (_MEDIAN_NORM / max(float(np.median(np.linalg.norm(raw, axis=-1))), 1e-6))
         raw = with_depth_cue(raw, embedding)
+        depth, depth_logs = valid_depth(embedding), log_depth(embedding)
         inside = np.ones((rows, cols), dtype=bool)
         if box is not None:
             inside = _box_cells(np.asarray(box, dtype=np.float64).reshape(4), rows, cols, scale)
@@ -182,6 +201,8 @@ class BuiltinSamBackend(SamBackend):
             segments = _segment(raw, k)
             if len(positives):
                 region = np.isin(segments, segments[positives[:, 0], positives[:, 1]])
+                if depth is not None:
+                    region = _joined_by_depth(region, segments, depth, depth_logs)
             else:
                 candidates = [_segments_inside(segments, inside, share) & inside for share in _BOX_SHARES]
                 centre = _cells(np.reshape(box, (2, 2)).mean(axis=0, keepdims=True), rows, cols, scale)[0]
@@ -286,6 +307,30 @@ def _segment(raw: np.ndarray, k: float) -> np.ndarray:
             size[a] += size[b]
             internal[a] = weight
     return np.array([find(i) for i in range(rows * cols)]).reshape(rows, cols)
+
+
+def _joined_by_depth(region: np.ndarray, segments: np.ndarray, depth: np.ndarray, logs: np.ndarray) -> np.ndarray:
+    """A clicked region joined by the parts of its object that differ in colour (trousers below a shirt, a head
+    above it), one neighbouring segment at a time: the neighbour, at most _JOIN_SIZE times the region and within
+    _JOIN_DEPTH_BAND of the region's median log depth (`logs`), whose union with the region has the largest share
+    of occluding outline on the `depth` map (`occlusion.in_front_share`), while that share is at least
+    _JOIN_IN_FRONT; at most _JOINS times. An object's parts complete its outline against what lies behind it; the
+    floor or wall next to it goes on into its surroundings, so joining them lowers the share."""
+    for _ in range(_JOINS):
+        around = ndimage.binary_dilation(region, np.ones((3, 3), dtype=bool)) & ~region
+        reference, size = float(np.median(logs[region])), np.count_nonzero(region)
+        best, best_share = None, -1.0
+        for label in np.unique(segments[around]):
+            part = segments == label
+            if np.count_nonzero(part) > _JOIN_SIZE * size or abs(np.median(logs[part]) - reference) > _JOIN_DEPTH_BAND:
+                continue
+            share = in_front_share(region | part, depth)
+            if share is not None and share > best_share:
+                best, best_share = part, share
+        if best is None or best_share < _JOIN_IN_FRONT:
+            return region
+        region = region | best
+    return region
 
 
 def _segments_inside(segments: np.ndarray, inside: np.ndarray, share: float) -> np.ndarray:

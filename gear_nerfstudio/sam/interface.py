@@ -41,18 +41,24 @@ CUE_FEATURE_NORM = 0.75
 """Median norm that cell features are scaled to before the log depth goes beside them (`with_depth_cue`)."""
 
 
-def log_depth(embedding: Embedding) -> Optional[np.ndarray]:
-    """Log of an embedding's depth cue on its valid cells (rows, cols), after a 3 x 3 median that removes the
-    isolated stray depths of rays that slip through a surface and keeps depth edges in place; rays that meet
-    nothing (an infinite or undefined depth) count as at the furthest depth of the map. None without a depth."""
+def valid_depth(embedding: Embedding) -> Optional[np.ndarray]:
+    """An embedding's depth cue on its valid cells (rows, cols); rays that meet nothing (an infinite or undefined
+    depth) count as at the furthest depth of the map. None without a depth."""
     if embedding.depth is None:
         return None
     rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
     depth = np.asarray(embedding.depth[:rows, :cols], dtype=np.float64)
     finite = np.isfinite(depth)
-    depth = np.where(finite, depth, depth[finite].max() if finite.any() else 1.0)
-    depth = ndimage.median_filter(depth, size=3, mode="nearest")
-    return np.log(np.maximum(depth, 1e-6))
+    return np.where(finite, depth, depth[finite].max() if finite.any() else 1.0)
+
+
+def log_depth(embedding: Embedding) -> Optional[np.ndarray]:
+    """Log of `valid_depth` after a 3 x 3 median that removes the isolated stray depths of rays that slip through
+    a surface and keeps depth edges in place. None without a depth."""
+    depth = valid_depth(embedding)
+    if depth is None:
+        return None
+    return np.log(np.maximum(ndimage.median_filter(depth, size=3, mode="nearest"), 1e-6))
 
 
 def with_depth_cue(features: np.ndarray, embedding: Embedding) -> np.ndarray:
@@ -84,6 +90,20 @@ def cell_centres(image_size: Tuple[int, int], grid_size: int) -> Tensor:
     scale = cells_per_pixel(image_size, grid_size)
     ys, xs = torch.meshgrid(torch.arange(rows) + 0.5, torch.arange(cols) + 0.5, indexing="ij")
     return torch.stack([xs, ys], dim=-1) / scale
+
+
+def cell_depth(depth: Tensor, image_size: Tuple[int, int], grid_size: int) -> np.ndarray:
+    """An embedding's depth cue (G, G) from a depth map (h, w) of an image of image_size (H, W) rendered at any
+    resolution: the map's pixel under each valid cell's centre (nearest, so that depth edges stay edges), zero on
+    the padding cells."""
+    rows, cols = valid_grid(image_size, grid_size)
+    centres = cell_centres(image_size, grid_size)
+    height, width = depth.shape
+    xs = (centres[..., 0] * width / image_size[1]).long().clamp(0, width - 1)
+    ys = (centres[..., 1] * height / image_size[0]).long().clamp(0, height - 1)
+    cue = np.zeros((grid_size, grid_size), dtype=np.float32)
+    cue[:rows, :cols] = depth.detach().cpu().float()[ys, xs].numpy()
+    return cue
 
 
 def sample_features(features: Tensor, pixels: Tensor, image_size: Tuple[int, int]) -> Tensor:

@@ -19,8 +19,8 @@ traced as a click's is) and the click rays (`ClickHit`). Two warnings:
   everything else in the view together: what the view mostly shows (wall, floor, sky, or the whole frame
   when the segmenter found no boundary), rarely the one object a user points at;
 - the click seems to have hit the background, when any of these holds:
-  - the mask is not in front of what surrounds it: less than IN_FRONT = a third of its edge is an
-    occluding edge (`in_front_share`: beyond the edge the view's depth is further, by more than EDGE_JUMP =
+  - the mask is not in front of what surrounds it: less than IN_FRONT = a third of its edge is an occluding
+    edge (`occlusion.in_front_share`: beyond the edge the view's depth is further, by more than EDGE_JUMP =
     10 % in inverse depth, than the surface inside would be if it went on). An object is seen against what
     lies behind it, so its silhouette is an occluding edge almost all round (except where it rests on
     something or is itself partly hidden); a piece of wall or floor goes on into its surroundings, or lies
@@ -48,10 +48,10 @@ import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.model_components.ray_samplers import UniformSampler
-from scipy import ndimage
 from torch import Tensor
 
 from gear_nerfstudio.errors import InputError
+from gear_nerfstudio.sam.occlusion import in_front_share
 
 from gear_nerfstudio.tracking.projection import project
 
@@ -72,10 +72,6 @@ MOST_OF_BORDER = 0.5
 """A clicked-view mask touching more than this share of the image's border pixels is likely the background."""
 FAR_BOUND = 0.95
 """A click whose median depth lies past this share of its ray's [near, far] range ends at the far bound."""
-EDGE_JUMP = 0.1
-"""Relative inverse-depth step, beyond the surface's own continuation, that counts as an occluding edge."""
-EDGE_OFFSETS = (1, 2, 3)
-"""Cells from a mask's edge at which `in_front_share` compares the two sides."""
 IN_FRONT = 1.0 / 3.0
 """A mask in front of its surroundings along less than this share of its edge is likely the background."""
 
@@ -247,55 +243,6 @@ def border_share(mask: np.ndarray) -> float:
         return view_share(mask)
     border = np.concatenate([mask[0], mask[-1], mask[1:-1, 0], mask[1:-1, -1]])
     return float(np.count_nonzero(border)) / border.size
-
-
-def _shifted(values: np.ndarray, rows: int, cols: int, fill) -> np.ndarray:
-    """out[r, c] = values[r + rows, c + cols], `fill` where that lies outside the grid."""
-    height, width = values.shape
-    out = np.full_like(values, fill)
-    out[max(0, -rows) : min(height, height - rows), max(0, -cols) : min(width, width - cols)] = values[
-        max(0, rows) : min(height, height + rows), max(0, cols) : min(width, width + cols)
-    ]
-    return out
-
-
-def in_front_share(cells: np.ndarray, depth: np.ndarray) -> Optional[float]:
-    """Share of a mask's edge along which the mask lies in front of what surrounds it (an occluding edge).
-
-    `cells` (rows, cols) is the mask on a grid of cells and `depth` (rows, cols) the rendered depth at their
-    centres. Each cell inside the mask with a 4-neighbour outside it (within the image) is one step of the
-    edge. The surface inside is continued across the edge: the inverse depth of a plane is linear in image
-    coordinates, so it is extrapolated from the two inside cells nearest the edge (a wall or a floor seen at
-    a grazing angle continues as predicted; a surface behind an object does not). The step is occluding
-    when the outside cell is further than both that prediction and the inside cell by more than EDGE_JUMP
-    (relative). Masks are decoded on a coarse grid and are often a cell or two too large or too small, so
-    the same test is also made 2 and 3 cells away on both sides, and any one of them counts. The depth is
-    first median-filtered over 3 x 3 cells: that removes a NeRF's isolated stray depths (rays that slip
-    through a thin surface) and keeps its step edges in place; only objects under 3 cells across (less
-    than 3/64 of the image on SAM's grid) vanish with it. None when the mask has no edge inside the image
-    (empty, or everything).
-    """
-    cells = np.asarray(cells, dtype=bool)
-    depth = ndimage.median_filter(np.asarray(depth, dtype=np.float64), size=3, mode="nearest")
-    disparity = 1.0 / np.maximum(depth, 1e-9)
-    steps = occluding = 0
-    for rows, cols in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        edge = cells & _shifted(~cells, rows, cols, False)
-        found = np.zeros_like(edge)
-        for k in EDGE_OFFSETS:
-            outside = _shifted(~cells, k * rows, k * cols, False)
-            beyond = _shifted(disparity, k * rows, k * cols, np.nan)
-            near_in = _shifted(cells, -(k - 1) * rows, -(k - 1) * cols, False)
-            first = _shifted(disparity, -(k - 1) * rows, -(k - 1) * cols, np.nan)
-            far_in = _shifted(cells, -k * rows, -k * cols, False)
-            second = _shifted(disparity, -k * rows, -k * cols, np.nan)
-            predicted = first + (first - second) * (2 * k - 1)  # 2k - 1 cells from `first` to `beyond`
-            with np.errstate(invalid="ignore"):
-                jump = (beyond < predicted * (1.0 - EDGE_JUMP)) & (beyond < first * (1.0 - EDGE_JUMP))
-            found |= edge & outside & near_in & far_in & jump
-        steps += int(edge.sum())
-        occluding += int(found.sum())
-    return None if steps == 0 else occluding / steps
 
 
 def check_click(
