@@ -27,7 +27,8 @@ since a depth edge stops them. On the real capture the depth cue raised the mIoU
 rendered training views from 19.7 to 49.7 (benchmarks/results/tracking_real.md). Parts of one object that differ
 in colour (shirt and trousers) are still separate segments, so a clicked region is then joined by its
 neighbouring segments at about its depth while that keeps its outline in front of what lies behind it
-(`_joined_by_depth`, with `occlusion.in_front_share`).
+(`_joined_by_depth`, with `occlusion.in_front_share`): 54.6-61.7 on the same views of four models, against
+49.5-53.3 with the cue alone.
 """
 
 from __future__ import annotations
