@@ -169,6 +169,9 @@ class RealTrackingBenchmark:
             "| person | propagation | mIoU | Acc. | t-mIoU | t-Acc. |",
             "|---|---|---|---|---|---|",
         ]
+        overlay_frames = capture.frames(
+            self.held_out, sorted({round(k) for k in np.linspace(0, frames - 1, OVERLAY_FRAMES)})
+        )
         details, refusals = [], []
         for index, person in enumerate(clicked_people):
             x, y = (value / self.downscale for value in deepest_pixel(person))
@@ -186,8 +189,8 @@ class RealTrackingBenchmark:
                                     f"the click: {refusal(log)}")  # fmt: skip
                     continue
                 scores, truth = score(folder, summary, held_out, click_time)
-                write_overlay(self.output / f"overlay_person{index}_{propagation}.png", capture, self.held_out, folder,
-                              summary, truth)  # fmt: skip
+                write_overlay(self.output / f"overlay_person{index}_{propagation}.png", overlay_frames, folder, summary,
+                              truth)  # fmt: skip
                 at_click = [s for t, s in scores.items() if t == click_time]
                 other = [s for t, s in scores.items() if t != click_time]
                 lines.append(
@@ -292,15 +295,16 @@ def score(
 
 
 def write_overlay(
-    path: Path, capture: Capture, camera: str, folder: Path, summary: Dict, truth: Dict[int, np.ndarray]
+    path: Path, held_out: Dict[int, np.ndarray], folder: Path, summary: Dict, truth: Dict[int, np.ndarray]
 ) -> None:
-    """OVERLAY_FRAMES held-out frames side by side: the tracked mask in red over the frame, the true person's outline
-    in green."""
+    """The held-out frames `held_out` (OVERLAY_FRAMES of them, by index) side by side: the tracked mask in red over
+    the frame, the true person's outline in green."""
     frames = len(truth)
     records = {round(r["time"] * (frames - 1)): r for r in summary["masks"]}
-    chosen = sorted({round(k) for k in np.linspace(0, frames - 1, OVERLAY_FRAMES)} & set(records))
     tiles = []
-    for frame, rgb in capture.frames(camera, chosen).items():
+    for frame, rgb in sorted(held_out.items()):
+        if frame not in records:
+            continue
         predicted = np.asarray(Image.open(folder / records[frame]["mask"])) > 0
         tile = np.asarray(Image.fromarray(rgb).resize(predicted.shape[::-1], Image.BILINEAR)).astype(np.float64)
         tile[predicted] = 0.5 * tile[predicted] + [127.5, 0.0, 0.0]

@@ -49,7 +49,7 @@ from gear_nerfstudio.sam.interface import (
     valid_grid,
     with_depth_cue,
 )
-from gear_nerfstudio.sam.occlusion import in_front_share
+from gear_nerfstudio.sam.occlusion import filtered_disparity, occluding_share
 
 _PIXELS_PER_CELL = 4  # resolution at which the hand-made features are computed
 _SEED = 20240617
@@ -186,8 +186,10 @@ class BuiltinSamBackend(SamBackend):
         features = np.asarray(embedding.features[:, :rows, :cols], dtype=np.float64)
         raw = np.einsum("kr,khw->hwr", self._projection, features)
         raw = raw * (_MEDIAN_NORM / max(float(np.median(np.linalg.norm(raw, axis=-1))), 1e-6))
-        raw = with_depth_cue(raw, embedding)
-        depth, depth_logs = valid_depth(embedding), log_depth(embedding)
+        depth = valid_depth(embedding)
+        logs = log_depth(depth)
+        raw = with_depth_cue(raw, logs)
+        disparity = None if depth is None else filtered_disparity(depth)
         inside = np.ones((rows, cols), dtype=bool)
         if box is not None:
             inside = _box_cells(np.asarray(box, dtype=np.float64).reshape(4), rows, cols, scale)
@@ -203,7 +205,7 @@ class BuiltinSamBackend(SamBackend):
             if len(positives):
                 region = np.isin(segments, segments[positives[:, 0], positives[:, 1]])
                 if depth is not None:
-                    region = _joined_by_depth(region, segments, depth, depth_logs)
+                    region = _joined_by_depth(region, segments, disparity, logs)
             else:
                 candidates = [_segments_inside(segments, inside, share) & inside for share in _BOX_SHARES]
                 centre = _cells(np.reshape(box, (2, 2)).mean(axis=0, keepdims=True), rows, cols, scale)[0]
@@ -211,7 +213,7 @@ class BuiltinSamBackend(SamBackend):
                 region = max(candidates, key=lambda candidate: _box_fill(candidate, inside))
             region &= inside & ~closer_to_negative
             if len(positives):  # thin strands are leaks along colour boundaries: open, if the seeds survive
-                opened = _connected_to(ndimage.binary_opening(region) if embedding.depth is None else region, positives)
+                opened = _connected_to(ndimage.binary_opening(region) if depth is None else region, positives)
                 region = opened if opened.any() else _connected_to(region, positives)
             regions.append(region)
 
@@ -310,22 +312,24 @@ def _segment(raw: np.ndarray, k: float) -> np.ndarray:
     return np.array([find(i) for i in range(rows * cols)]).reshape(rows, cols)
 
 
-def _joined_by_depth(region: np.ndarray, segments: np.ndarray, depth: np.ndarray, logs: np.ndarray) -> np.ndarray:
+def _joined_by_depth(region: np.ndarray, segments: np.ndarray, disparity: np.ndarray, logs: np.ndarray) -> np.ndarray:
     """A clicked region joined by the parts of its object that differ in colour (trousers below a shirt, a head
     above it), one neighbouring segment at a time: the neighbour, at most _JOIN_SIZE times the region and within
     _JOIN_DEPTH_BAND of the region's median log depth (`logs`), whose union with the region has the largest share
-    of occluding outline on the `depth` map (`occlusion.in_front_share`), while that share is at least
-    _JOIN_IN_FRONT; at most _JOINS times. An object's parts complete its outline against what lies behind it; the
-    floor or wall next to it goes on into its surroundings, so joining them lowers the share."""
+    of occluding outline (`occlusion.in_front_share`, on the view's `filtered_disparity`), while that share is at
+    least _JOIN_IN_FRONT; at most _JOINS times. An object's parts complete its outline against what lies behind it;
+    the floor or wall next to it goes on into its surroundings, so joining them lowers the share."""
+    labels, sizes = np.unique(segments, return_counts=True)
+    size_of, median_of = dict(zip(labels, sizes)), dict(zip(labels, ndimage.median(logs, segments, labels)))
     for _ in range(_JOINS):
         around = ndimage.binary_dilation(region, np.ones((3, 3), dtype=bool)) & ~region
         reference, size = float(np.median(logs[region])), np.count_nonzero(region)
         best, best_share = None, -1.0
         for label in np.unique(segments[around]):
-            part = segments == label
-            if np.count_nonzero(part) > _JOIN_SIZE * size or abs(np.median(logs[part]) - reference) > _JOIN_DEPTH_BAND:
+            if size_of[label] > _JOIN_SIZE * size or abs(median_of[label] - reference) > _JOIN_DEPTH_BAND:
                 continue
-            share = in_front_share(region | part, depth)
+            part = segments == label
+            share = occluding_share(region | part, disparity)
             if share is not None and share > best_share:
                 best, best_share = part, share
         if best is None or best_share < _JOIN_IN_FRONT:

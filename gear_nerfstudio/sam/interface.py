@@ -52,25 +52,23 @@ def valid_depth(embedding: Embedding) -> Optional[np.ndarray]:
     return np.where(finite, depth, depth[finite].max() if finite.any() else 1.0)
 
 
-def log_depth(embedding: Embedding) -> Optional[np.ndarray]:
-    """Log of `valid_depth` after a 3 x 3 median that removes the isolated stray depths of rays that slip through
-    a surface and keeps depth edges in place. None without a depth."""
-    depth = valid_depth(embedding)
+def log_depth(depth: Optional[np.ndarray]) -> Optional[np.ndarray]:
+    """Log of a `valid_depth` map after a 3 x 3 median that removes the isolated stray depths of rays that slip
+    through a surface and keeps depth edges in place. None without a depth."""
     if depth is None:
         return None
     return np.log(np.maximum(ndimage.median_filter(depth, size=3, mode="nearest"), 1e-6))
 
 
-def with_depth_cue(features: np.ndarray, embedding: Embedding) -> np.ndarray:
+def with_depth_cue(features: np.ndarray, logs: Optional[np.ndarray]) -> np.ndarray:
     """Features (rows, cols, C) of an embedding's valid cells with its depth cue beside them: scaled to a median
-    norm of CUE_FEATURE_NORM, with the log depth as one more channel, so that a depth ratio of e (a person two
-    units in front of a wall five units away is a ratio of 2.5) weighs as much as a typical feature. Unchanged
-    when the embedding has no depth."""
-    depth = log_depth(embedding)
-    if depth is None:
+    norm of CUE_FEATURE_NORM, with the log depth (`log_depth`) as one more channel, so that a depth ratio of e (a
+    person two units in front of a wall five units away is a ratio of 2.5) weighs as much as a typical feature.
+    Unchanged without a depth."""
+    if logs is None:
         return features
     scale = CUE_FEATURE_NORM / max(float(np.median(np.linalg.norm(features, axis=-1))), 1e-12)
-    return np.concatenate([features * scale, depth[..., None]], axis=-1)
+    return np.concatenate([features * scale, logs[..., None]], axis=-1)
 
 
 def cells_per_pixel(image_size: Tuple[int, int], grid_size: int) -> float:

@@ -41,9 +41,18 @@ def in_front_share(cells: np.ndarray, depth: np.ndarray) -> Optional[float]:
     than 3/64 of the image on SAM's grid) vanish with it. None when the mask has no edge inside the image
     (empty, or everything).
     """
-    cells = np.asarray(cells, dtype=bool)
+    return occluding_share(cells, filtered_disparity(depth))
+
+
+def filtered_disparity(depth: np.ndarray) -> np.ndarray:
+    """Inverse depth (rows, cols) after the 3 x 3 median of `in_front_share`."""
     depth = ndimage.median_filter(np.asarray(depth, dtype=np.float64), size=3, mode="nearest")
-    disparity = 1.0 / np.maximum(depth, 1e-9)
+    return 1.0 / np.maximum(depth, 1e-9)
+
+
+def occluding_share(cells: np.ndarray, disparity: np.ndarray) -> Optional[float]:
+    """`in_front_share` on a `filtered_disparity` map (made once for many masks on one view)."""
+    cells = np.asarray(cells, dtype=bool)
     steps = occluding = 0
     for rows, cols in ((0, 1), (0, -1), (1, 0), (-1, 0)):
         edge = cells & _shifted(~cells, rows, cols, False)

@@ -30,7 +30,15 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gear_nerfstudio.model.gear_model import evaluating
-from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, valid_grid, with_depth_cue
+from gear_nerfstudio.sam.interface import (
+    Embedding,
+    SamBackend,
+    cell_centres,
+    log_depth,
+    valid_depth,
+    valid_grid,
+    with_depth_cue,
+)
 from gear_nerfstudio.tracking.metrics import iou
 from gear_nerfstudio.tracking.click import TrackingError, check_time, image_size, single_camera
 
@@ -150,7 +158,7 @@ def valid_cell_features(embedding: Embedding) -> np.ndarray:
     embedding's depth cue beside them when it has one (`with_depth_cue`)."""
     rows, cols = valid_grid(embedding.image_size, embedding.grid_size)
     features = embedding.features[:, :rows, :cols].transpose(1, 2, 0).astype(np.float64)
-    return with_depth_cue(features, embedding).reshape(rows * cols, -1)
+    return with_depth_cue(features, log_depth(valid_depth(embedding))).reshape(rows * cols, -1)
 
 
 def _sample(features: np.ndarray, count: int) -> np.ndarray:
