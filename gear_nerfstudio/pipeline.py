@@ -73,6 +73,7 @@ class GearPipeline(VanillaPipeline):
         self.sam_backend = config.sam.setup()
         check_sam_dim(config, self.sam_backend)
         self.datamanager.attach_sam(self.sam_backend)
+        self.model.see_from(self.datamanager.train_dataparser_outputs.cameras)
         self.gear_update_state = GearUpdateState(self.model.gear_assignment(), config.gear_updates.views_per_update)
         self.viewer_tracking = ViewerTracking(self.model, self.sam_backend)
         self.model.render_hooks.append(self.viewer_tracking.render_hook)

@@ -223,6 +223,26 @@ def test_with_the_depth_cue_the_upshift_masks_decoder_gets_the_loss_maps_depth(l
     assert torch.equal(mask, (expected[0, 0] > 0.5) & moving)
 
 
+def test_the_updates_render_their_views_as_training_sees_the_scene(loop_run):
+    """The model's renders keep the density where 2 training cameras see (``min_views``); the updates' loss maps
+    and guard take all space, as training does: with one camera only (so that no point is seen by two), a render
+    is empty but a loss map and the views' PSNR are what they were."""
+    _, trainer, updater = loop_run
+    model, outputs = trainer.pipeline.model, trainer.pipeline.datamanager.train_dataparser_outputs
+    before = updater.loss_map(0)
+    views = [updater.view(trainer.pipeline.datamanager.train_dataset, 0)]
+    psnr = updater.psnr(views)
+    model.see_from(outputs.cameras[0:1])
+    try:
+        assert float(model.render_view(before.camera)["accumulation"].max()) == 0.0
+        after = updater.loss_map(0)
+        assert torch.equal(after.rgb_loss, before.rgb_loss) and torch.equal(after.depth, before.depth)
+        assert updater.psnr(views) == psnr
+    finally:
+        model.see_from(outputs.cameras)
+    assert float(model.render_view(before.camera)["accumulation"].mean()) > 0.5
+
+
 def test_a_resumed_run_goes_on_with_the_updates_where_they_were(loop_run):
     root, first, _ = loop_run
     checkpoints = root / "runs" / "loop" / "gear-nerf-small" / "first" / "nerfstudio_models"

@@ -36,6 +36,7 @@ from gear_nerfstudio.fields.planes import (
     touched_columns,
 )
 from gear_nerfstudio.fields.regularisers import l1_time_planes, plane_tv, time_smoothness
+from gear_nerfstudio.fields.seen_space import SeenSpace
 
 APPEARANCE = "appearance"
 """Key of each sample's appearance code in ``RaySamples.metadata`` (``sample_points``)."""
@@ -147,6 +148,7 @@ class GearField(Field):
         if initial_density is not None and not initial_density > 0:
             raise ValueError(f"initial_density must be > 0, got {initial_density}")
         self.register_buffer("aabb", aabb.clone().float())
+        self.seen_space: Optional[SeenSpace] = None
         self.num_gears = num_gears
         self.feature_dim = feature_dim
         self.geo_feat_dim = geo_feat_dim
@@ -286,8 +288,12 @@ class GearField(Field):
         levels: Optional[Int[Tensor, "N"]] = None,
     ) -> Tuple[Float[Tensor, "N 1"], Float[Tensor, "N E"]]:
         """``get_density`` at plane coordinates x in [-1, 1]^3 (``normalize_positions``) and times t in [0, 1]:
-        zero density where ``inside`` is False; the embedding holds the geometry features, f (Eq 7) and p (Eq 5).
+        zero density where ``inside`` is False, and in evaluation mode outside ``seen_space`` when it is set
+        (`seen_space.SeenSpace`); the embedding holds the geometry features, f (Eq 7) and p (Eq 5).
         ``levels``: the samples' gear levels p when the caller has them (Eq 5 otherwise)."""
+        if self.seen_space is not None and not self.training:
+            seen = self.seen_space(x)
+            inside = seen if inside is None else inside & seen
         if levels is None:
             with torch.no_grad():
                 levels = gear_level(self.gear_function(x, t), self.num_gears)

@@ -22,6 +22,7 @@ from gear_nerfstudio.fields.planes import (
     time_coords,
 )
 from gear_nerfstudio.fields.regularisers import l1_time_planes, plane_tv, time_smoothness
+from gear_nerfstudio.fields.seen_space import SeenSpace
 
 class ProposalDensityField(nn.Module):
     """Density-only planar field for the optional proposal sampler (one gear, one resolution).
@@ -48,13 +49,17 @@ class ProposalDensityField(nn.Module):
         self.space_planes = PlaneTriple(feature_dim, [(resolution, resolution)], init_space_plane)
         self.time_planes = PlaneTriple(feature_dim, [(max(1, time_resolution), resolution)], init_time_plane)
         self.decoder = nn.Linear(3 * feature_dim, 1)
+        self.seen_space: Optional[SeenSpace] = None
 
     def density_fn(
         self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*rays 1"]] = None
     ) -> Float[Tensor, "*bs 1"]:
-        """Density at world positions; per-ray ``times`` broadcast over the samples of each ray."""
+        """Density at world positions; per-ray ``times`` broadcast over the samples of each ray. In evaluation
+        mode zero outside ``seen_space`` when it is set (`seen_space.SeenSpace`)."""
         shape = positions.shape[:-1]
         x, inside = normalize_positions(positions.reshape(-1, 3), self.aabb, self.spatial_distortion)
+        if self.seen_space is not None and not self.training:
+            inside = inside & self.seen_space(x)
         t = broadcast_times(times, shape, positions).reshape(-1, 1)
         products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
         raw = self.decoder(flat_features(products))

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Dict, List, Optional, Protocol, Tuple
+from typing import ContextManager, Dict, List, Optional, Protocol, Tuple
 
 import numpy as np
 import torch
@@ -88,6 +88,9 @@ class UpdateTarget(Protocol):
 
     def render_view(self, camera: Cameras) -> Dict[str, Tensor]:
         """A full render of one camera in evaluation mode: at least "rgb", "sam" (Eq 8) and "depth"."""
+
+    def all_space(self) -> ContextManager[None]:
+        """Inside, renders take the density everywhere, as training does (not only where the cameras see)."""
 
     def visible_surface(self, camera: Cameras, outputs: Dict[str, Tensor]) -> Tensor:
         """The world point (H, W, 3) each pixel of a render sees."""
@@ -289,9 +292,11 @@ class GearUpdater:
         return [self.view(dataset, index) for index in dict.fromkeys(indices)]
 
     def psnr(self, views: List[Tuple[Cameras, Tensor]]) -> float:
-        """PSNR of the renders of views (camera, ground truth) over all their pixels (``views_psnr``)."""
+        """PSNR of the renders of views (camera, ground truth) over all their pixels (``views_psnr``), rendered as
+        training sees the scene (``UpdateTarget.all_space``)."""
         device = self.target.device
-        return views_psnr([(self.target.render_view(camera)["rgb"] - rgb.to(device)).square().mean() for camera, rgb in views])
+        with self.target.all_space():
+            return views_psnr([(self.target.render_view(camera)["rgb"] - rgb.to(device)).square().mean() for camera, rgb in views])
 
     def view(self, dataset: InputDataset, image_index: int) -> Tuple[Cameras, Tensor]:
         """Camera of an image, rescaled to the loss-map size (on the model's device), and the image resized to match
@@ -303,11 +308,13 @@ class GearUpdater:
         return camera, resized_image(dataset, image_index, size)
 
     def loss_map(self, image_index: int) -> LossMap:
-        """Render a training view and its per-pixel loss L(r) = L_pho(r) + lambda L_SAM(r)."""
+        """Render a training view as training sees the scene (``UpdateTarget.all_space``) and its per-pixel loss
+        L(r) = L_pho(r) + lambda L_SAM(r)."""
         camera, image = self.view(self.views.train_dataset, image_index)
         size = tuple(image.shape[:2])
         rgb = image.to(self.target.device)
-        outputs = self.target.render_view(camera)
+        with self.target.all_space():
+            outputs = self.target.render_view(camera)
         loss = (outputs["rgb"] - rgb).square().sum(-1)
         rgb_loss = loss.clone()
         if self.config.mask_source == "sam":

@@ -45,6 +45,7 @@ from gear_nerfstudio import distributed
 from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.fields.gear_field import GearField, GearFieldHeadNames, sample_points
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
+from gear_nerfstudio.fields.seen_space import SeenSpace
 from gear_nerfstudio.model.image_render import render_image
 from gear_nerfstudio.model.renderers import GearLevelRenderer, SamRenderer
 from gear_nerfstudio.model.split_sampler import SplitSampler
@@ -100,6 +101,11 @@ class GearNeRFModelConfig(ModelConfig):
     """Channels of the per-camera appearance code in the colour MLP (exposure and white balance differ between a
     rig's cameras); 0 turns it off. The held-out camera, and any camera without a rig index (viewer, camera paths),
     is rendered with the mean code of the training cameras."""
+    min_views: int = 2
+    """Renders in evaluation mode (ns-eval, ns-render, the viewer, ns-gear-track) take the density only where at least
+    this many training cameras see a point (`fields.seen_space`); elsewhere the field was fitted from one view or
+    none, and at a novel view it shows as near blobs. 0 renders all space. Training, and the gear updates' renders
+    of training views (`all_space`), always see all space."""
     initial_density: Optional[float] = None
     """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's
     initialisation, about exp(-1) = 0.37 (K-Planes)."""
@@ -499,6 +505,29 @@ class GearNeRFModel(Model):
         rays = camera.to(self.device).generate_rays(camera_indices=0, keep_shape=True)
         with evaluating(self), self.rendering("sam"):
             return self.get_outputs_for_camera_ray_bundle(rays)
+
+    def see_from(self, cameras: Cameras) -> None:
+        """Renders in evaluation mode keep the density where at least ``min_views`` of these training cameras see
+        a point (`fields.seen_space.SeenSpace`); nothing changes when ``min_views`` is 0."""
+        seen = None
+        if self.config.min_views > 0:
+            seen = SeenSpace(cameras, self.config.min_views, self.field.aabb, self.field.spatial_distortion)
+        for field in [self.field, *self.proposal_networks]:
+            field.seen_space = seen
+
+    @contextlib.contextmanager
+    def all_space(self) -> Iterator[None]:
+        """Inside, renders take the density everywhere (``see_from`` is set aside), as training does: the gear
+        updates render training views so."""
+        fields = [self.field, *self.proposal_networks]
+        before = [field.seen_space for field in fields]
+        for field in fields:
+            field.seen_space = None
+        try:
+            yield
+        finally:
+            for field, seen in zip(fields, before):
+                field.seen_space = seen
 
     @torch.no_grad()
     def visible_surface(self, camera: Cameras, outputs: Dict[str, Tensor]) -> Float[Tensor, "H W 3"]:
