@@ -24,6 +24,7 @@ from gear_nerfstudio.fields.planes import (
 from gear_nerfstudio.fields.regularisers import l1_time_planes, plane_tv, time_smoothness
 from gear_nerfstudio.fields.seen_space import SeenSpace
 
+
 class ProposalDensityField(nn.Module):
     """Density-only planar field for the optional proposal sampler (one gear, one resolution).
 

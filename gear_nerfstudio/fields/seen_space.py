@@ -14,7 +14,7 @@ from typing import Optional
 
 import torch
 from jaxtyping import Bool, Float, Int
-from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.field_components.spatial_distortions import SceneContraction, SpatialDistortion
 from torch import Tensor
 
@@ -38,42 +38,12 @@ def distinct_cameras(cameras: Cameras) -> Cameras:
     return flat[first.sort().values]
 
 
-def frustum_planes(cameras: Cameras) -> Float[Tensor, "4 5C"]:
-    """Each undistorted pinhole camera's view as five half-spaces, side by side: with K [R^T | -R^T c] (OpenCV
-    axes) taking a world point X to (u z, v z, z), the point is in front and inside the W x H image when
-    u z >= 0, W z - u z > 0, v z >= 0, H z - v z > 0 and z > 0; [X, 1] @ planes gives those five values."""
-    rotation, centre = cameras.camera_to_worlds[:, :, :3], cameras.camera_to_worlds[:, :, 3]
-    to_camera = rotation.transpose(1, 2) * torch.tensor([1.0, -1.0, -1.0]).to(rotation)[None, :, None]
-    fx, fy, cx, cy = (value.reshape(-1).to(rotation) for value in (cameras.fx, cameras.fy, cameras.cx, cameras.cy))
-    width, height = cameras.width.reshape(-1).to(rotation), cameras.height.reshape(-1).to(rotation)
-    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
-    rows = [  # the five values as combinations of the camera-space x, y, z
-        torch.stack([fx, zero, cx], dim=-1),
-        torch.stack([-fx, zero, width - cx], dim=-1),
-        torch.stack([zero, fy, cy], dim=-1),
-        torch.stack([zero, -fy, height - cy], dim=-1),
-        torch.stack([zero, zero, one], dim=-1),
-    ]
-    linear = torch.stack(rows, dim=1) @ to_camera  # (C, 5, 3)
-    offset = -(linear @ centre[:, :, None])  # (C, 5, 1)
-    return torch.cat([linear, offset], dim=-1).permute(2, 0, 1).reshape(4, -1)
-
-
 def views_seeing(cameras: Cameras, positions: Float[Tensor, "*bs 3"]) -> Int[Tensor, "*bs"]:
-    """How many of the cameras see each world point: it projects in front of them and inside their image.
-    Undistorted pinhole cameras take one matrix product (`frustum_planes`); others `projection.project`."""
-    flat = positions.reshape(-1, 3)
-    distorted = cameras.distortion_params is not None and bool(cameras.distortion_params.any())
-    if distorted or bool((cameras.camera_type != CameraType.PERSPECTIVE.value).any()):
-        uv, in_front = project(cameras, flat)
-        width, height = cameras.width.reshape(-1, 1).to(uv), cameras.height.reshape(-1, 1).to(uv)
-        u, v = uv[..., 0], uv[..., 1]
-        seen = (in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)).T
-    else:
-        planes = frustum_planes(cameras)
-        values = (flat @ planes[:3] + planes[3]).reshape(len(flat), -1, 5)
-        seen = (values[..., :4] >= 0).all(dim=-1) & (values[..., 4] > 0)
-    return seen.sum(dim=-1).reshape(positions.shape[:-1])
+    """How many of the cameras see each world point: it projects in front of them and inside their image."""
+    uv, in_front = project(cameras, positions.reshape(-1, 3))
+    width, height = cameras.width.reshape(-1, 1).to(uv), cameras.height.reshape(-1, 1).to(uv)
+    u, v = uv[..., 0], uv[..., 1]
+    return (in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)).sum(dim=0).reshape(positions.shape[:-1])
 
 
 def world_positions(
