@@ -84,6 +84,13 @@ def test_evaluation_renders_take_density_only_where_min_views_training_cameras_s
             assert (float(density_fn(points, times)[1, 0]) > 0) == seen_by_one  # set back after all_space
 
 
+def test_a_rig_of_fewer_cameras_than_min_views_renders_what_all_of_them_see():
+    one_camera = facing_cameras()[0:1]
+    seen = SeenSpace(one_camera, 2, torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    assert seen.min_views == 1
+    assert seen(POINTS[:2]).tolist() == [True, True]  # camera A sees both
+
+
 def test_a_loaded_run_renders_with_the_space_its_training_cameras_see(tiny_run):
     """The pipeline that ns-eval, ns-render, the viewer and ns-gear-track load gives the model its training cameras
     (5 cameras, cam00 held out): the rig's 4 other cameras, once each over the 3 frames."""

@@ -61,7 +61,8 @@ def world_positions(
 
 
 class SeenSpace:
-    """Whether points are seen by at least ``min_views`` of the training cameras (`views_seeing`), looked up on a
+    """Whether points are seen by at least ``min_views`` of the training cameras (`views_seeing`; all of them when
+    there are fewer), looked up on a
     GRID^3 grid over a field's plane coordinates (`planes.normalize_positions`), made once from the cells' centres:
     a render's millions of samples then cost an indexing instead of a projection into every camera."""
 
@@ -76,14 +77,14 @@ class SeenSpace:
         spatial_distortion: Optional[SpatialDistortion] = None,
     ) -> None:
         self.cameras = distinct_cameras(cameras)
-        self.min_views = min_views
+        self.min_views = min(min_views, len(self.cameras))  # a rig of one camera renders what that camera sees
         steps = (torch.arange(self.GRID, dtype=torch.float32) + 0.5) / self.GRID * 2.0 - 1.0
         centres = torch.stack(torch.meshgrid(steps, steps, steps, indexing="ij"), dim=-1).reshape(-1, 3)
         cameras_here, box = self.cameras.to("cpu"), aabb.detach().cpu().float()
         counts = torch.cat(
             [views_seeing(cameras_here, world_positions(chunk, box, spatial_distortion)) for chunk in centres.split(1 << 16)]
         )
-        self.grid = (counts >= min_views).reshape(self.GRID, self.GRID, self.GRID)
+        self.grid = (counts >= self.min_views).reshape(self.GRID, self.GRID, self.GRID)
 
     def __call__(self, x: Float[Tensor, "N 3"]) -> Bool[Tensor, "N"]:
         """Whether the points at plane coordinates x (N, 3) in [-1, 1] lie in a seen cell."""
