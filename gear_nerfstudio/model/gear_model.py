@@ -103,7 +103,7 @@ class GearNeRFModelConfig(ModelConfig):
     is rendered with the mean code of the training cameras."""
     min_views: int = 2
     """Renders in evaluation mode (ns-eval, ns-render, the viewer, ns-gear-track) take the density only where at least
-    this many training cameras see a point (`fields.seen_space`); elsewhere the field was fitted from one view or
+    this many training cameras (all of a smaller rig's) see a point (`fields.seen_space`); elsewhere the field was fitted from one view or
     none, and at a novel view it shows as near blobs. 0 renders all space. Training, and the gear updates' renders
     of training views (`all_space`), always see all space."""
     initial_density: Optional[float] = None
