@@ -225,14 +225,16 @@ def test_with_the_depth_cue_the_upshift_masks_decoder_gets_the_loss_maps_depth(l
 
 def test_the_updates_render_their_views_as_training_sees_the_scene(loop_run):
     """The model's renders keep the density where 2 training cameras see (``min_views``); the updates' loss maps
-    and guard take all space, as training does: with one camera only (so that no point is seen by two), a render
-    is empty but a loss map and the views' PSNR are what they were."""
+    and guard take all space, as training does: seen from a camera that looks away from the scene, a render of a
+    training view is empty but a loss map and the views' PSNR are what they were."""
     _, trainer, updater = loop_run
     model, outputs = trainer.pipeline.model, trainer.pipeline.datamanager.train_dataparser_outputs
     before = updater.loss_map(0)
     views = [updater.view(trainer.pipeline.datamanager.train_dataset, 0)]
     psnr = updater.psnr(views)
-    model.see_from(outputs.cameras[0:1])
+    away = copy.deepcopy(outputs.cameras[0:1])
+    away.camera_to_worlds[:, :, :3] *= torch.tensor([-1.0, 1.0, -1.0])  # turned round about its y axis
+    model.see_from(away)
     try:
         assert float(model.render_view(before.camera)["accumulation"].max()) == 0.0
         after = updater.loss_map(0)
