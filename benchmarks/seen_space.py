@@ -1,8 +1,8 @@
 """Held-out PSNR and render time of a trained run with and without `--pipeline.model.min-views` (issue 26).
 
 Renders the held-out camera at the given frames through the path `ns-eval` takes
-(`get_outputs_for_camera_ray_bundle`), once as the run renders by default (density only where `min_views` training
-cameras see) and once over all space (`model.all_space()`), and prints a markdown row per frame and their means.
+(`get_outputs_for_camera_ray_bundle`), once with the density only where `--min-views` training cameras see and once
+over all space (`model.all_space()`), and prints a markdown row per frame and their means.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/seen_space.py outputs/<run>/config.yml --frames 0 5 10 15 19
 """
@@ -26,6 +26,8 @@ class SeenSpaceBenchmark:
     """config.yml of a trained run."""
     frames: List[int] = dataclasses.field(default_factory=lambda: [0, 5, 10, 15, 19])
     """Frame indices of the held-out camera to render."""
+    min_views: int = 2
+    """`--pipeline.model.min-views` of the "seen" renders (the run's own setting is ignored)."""
 
     def main(self) -> None:
         from nerfstudio.utils.eval_utils import eval_setup
@@ -33,6 +35,8 @@ class SeenSpaceBenchmark:
         torch.set_num_threads(1)
         _, pipeline, _, _ = eval_setup(self.config, test_mode="test")
         model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
+        model.config.min_views = self.min_views
+        model.see_from(pipeline.datamanager.train_dataparser_outputs.cameras)
         frame_ids = dataset.metadata["frame_ids"].tolist()
         print("| frame | PSNR, seen | PSNR, all space | render s, seen | render s, all space |\n|---|---|---|---|---|")
         totals = []

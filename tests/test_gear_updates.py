@@ -224,7 +224,7 @@ def test_with_the_depth_cue_the_upshift_masks_decoder_gets_the_loss_maps_depth(l
 
 
 def test_the_updates_render_their_views_as_training_sees_the_scene(loop_run):
-    """The model's renders keep the density where 2 training cameras see (``min_views``); the updates' loss maps
+    """With ``min_views`` 2 the model's renders keep the density where 2 training cameras see; the updates' loss maps
     and guard take all space, as training does: seen from a camera that looks away from the scene, a render of a
     training view is empty but a loss map and the views' PSNR are what they were."""
     _, trainer, updater = loop_run
@@ -234,15 +234,18 @@ def test_the_updates_render_their_views_as_training_sees_the_scene(loop_run):
     psnr = updater.psnr(views)
     away = copy.deepcopy(outputs.cameras[0:1])
     away.camera_to_worlds[:, :, :3] *= torch.tensor([-1.0, 1.0, -1.0])  # turned round about its y axis
+    model.config.min_views = 2
     model.see_from(away)
     try:
         assert float(model.render_view(before.camera)["accumulation"].max()) == 0.0
         after = updater.loss_map(0)
         assert torch.equal(after.rgb_loss, before.rgb_loss) and torch.equal(after.depth, before.depth)
         assert updater.psnr(views) == psnr
-    finally:
         model.see_from(outputs.cameras)
-    assert float(model.render_view(before.camera)["accumulation"].mean()) > 0.5
+        assert float(model.render_view(before.camera)["accumulation"].mean()) > 0.5
+    finally:
+        model.config.min_views = 0
+        model.see_from(outputs.cameras)
 
 
 def test_a_resumed_run_goes_on_with_the_updates_where_they_were(loop_run):

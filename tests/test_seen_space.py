@@ -91,11 +91,17 @@ def test_a_rig_of_fewer_cameras_than_min_views_renders_what_all_of_them_see():
     assert seen(POINTS[:2]).tolist() == [True, True]  # camera A sees both
 
 
-def test_a_loaded_run_renders_with_the_space_its_training_cameras_see(tiny_run):
+def test_a_loaded_run_renders_with_the_space_its_training_cameras_see(tiny_run, tmp_path):
     """The pipeline that ns-eval, ns-render, the viewer and ns-gear-track load gives the model its training cameras
-    (5 cameras, cam00 held out): the rig's 4 other cameras, once each over the 3 frames."""
+    (5 cameras, cam00 held out): the rig's 4 other cameras, once each over the 3 frames; by default (0) none."""
     _, _, first, _ = tiny_run
     _, pipeline, _, _ = eval_setup(first / "config.yml", test_mode="test")
+    assert pipeline.model.config.min_views == 0 and pipeline.model.field.seen_space is None
+    config = tmp_path / "config.yml"  # the run's config with `min_views: 2` under `model:`, as a user would set it
+    text = (first / "config.yml").read_text()
+    assert text.count("min_views: 0") == 1
+    config.write_text(text.replace("min_views: 0", "min_views: 2"))
+    _, pipeline, _, _ = eval_setup(config, test_mode="test")
     model = pipeline.model
     seen = model.field.seen_space
     assert seen is not None and seen.min_views == model.config.min_views == 2
