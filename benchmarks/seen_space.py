@@ -32,6 +32,8 @@ class SeenSpaceBenchmark:
     def main(self) -> None:
         from nerfstudio.utils.eval_utils import eval_setup
 
+        from gear_nerfstudio.model.gear_model import psnr
+
         torch.set_num_threads(1)
         _, pipeline, _, _ = eval_setup(self.config, test_mode="test")
         model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
@@ -51,7 +53,7 @@ class SeenSpaceBenchmark:
                 with space:
                     rgb = model.get_outputs_for_camera_ray_bundle(rays)["rgb"].clamp(0, 1)
                 seconds = time.perf_counter() - started
-                row.append((-10.0 * float(np.log10(float((rgb - truth).square().mean()))), seconds))
+                row.append((float(psnr(rgb, truth)), seconds))
             totals.append(row)
             print(f"| {frame} | {row[0][0]:.2f} | {row[1][0]:.2f} | {row[0][1]:.1f} | {row[1][1]:.1f} |")
         means = np.mean(np.array(totals), axis=0)

@@ -292,11 +292,15 @@ class GearUpdater:
         return [self.view(dataset, index) for index in dict.fromkeys(indices)]
 
     def psnr(self, views: List[Tuple[Cameras, Tensor]]) -> float:
-        """PSNR of the renders of views (camera, ground truth) over all their pixels (``views_psnr``), rendered as
-        training sees the scene (``UpdateTarget.all_space``)."""
+        """PSNR of the renders of views (camera, ground truth) over all their pixels (``views_psnr``)."""
         device = self.target.device
+        return views_psnr([(self.render(camera)["rgb"] - rgb.to(device)).square().mean() for camera, rgb in views])
+
+    def render(self, camera: Cameras) -> Dict[str, Tensor]:
+        """The target's render of a view as training sees the scene (``UpdateTarget.all_space``): the updates and
+        the guard measure what training fits."""
         with self.target.all_space():
-            return views_psnr([(self.target.render_view(camera)["rgb"] - rgb.to(device)).square().mean() for camera, rgb in views])
+            return self.target.render_view(camera)
 
     def view(self, dataset: InputDataset, image_index: int) -> Tuple[Cameras, Tensor]:
         """Camera of an image, rescaled to the loss-map size (on the model's device), and the image resized to match
@@ -308,13 +312,11 @@ class GearUpdater:
         return camera, resized_image(dataset, image_index, size)
 
     def loss_map(self, image_index: int) -> LossMap:
-        """Render a training view as training sees the scene (``UpdateTarget.all_space``) and its per-pixel loss
-        L(r) = L_pho(r) + lambda L_SAM(r)."""
+        """Render a training view (`render`) and its per-pixel loss L(r) = L_pho(r) + lambda L_SAM(r)."""
         camera, image = self.view(self.views.train_dataset, image_index)
         size = tuple(image.shape[:2])
         rgb = image.to(self.target.device)
-        with self.target.all_space():
-            outputs = self.target.render_view(camera)
+        outputs = self.render(camera)
         loss = (outputs["rgb"] - rgb).square().sum(-1)
         rgb_loss = loss.clone()
         if self.config.mask_source == "sam":

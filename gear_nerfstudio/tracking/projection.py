@@ -23,21 +23,18 @@ def project(cameras: Cameras, points: Float[Tensor, "N 3"]) -> Tuple[Float[Tenso
     local = torch.einsum("cij,cnj->cni", rotation.transpose(1, 2), points[None] - centre[:, None])
     x, y, z = local[..., 0], -local[..., 1], -local[..., 2]  # OpenGL -> OpenCV axes
     fisheye = (cameras.camera_type == CameraType.FISHEYE.value).reshape(-1, 1)
+    r = torch.sqrt(x * x + y * y)
+    theta = torch.atan2(r, z)
+    safe_r = torch.where(r > 0, r, torch.ones_like(r))
+    fisheye_scale = torch.where(r > 0, theta / safe_r, 1.0 / z.clamp_min(1e-12))
     pinhole_scale = 1.0 / torch.where(z > 0, z, torch.ones_like(z))
-    if bool(fisheye.any()):
-        r = torch.sqrt(x * x + y * y)
-        theta = torch.atan2(r, z)
-        safe_r = torch.where(r > 0, r, torch.ones_like(r))
-        fisheye_scale = torch.where(r > 0, theta / safe_r, 1.0 / z.clamp_min(1e-12))
-        scale = torch.where(fisheye, fisheye_scale, pinhole_scale)
-        in_front = torch.where(fisheye, theta < torch.pi / 2 + 1e-6, z > 0)
-    else:
-        scale, in_front = pinhole_scale, z > 0
+    scale = torch.where(fisheye, fisheye_scale, pinhole_scale)
     a, b = x * scale, y * scale
-    if cameras.distortion_params is not None and bool(cameras.distortion_params.any()):
+    if cameras.distortion_params is not None:
         a, b = _distort(a, b, cameras.distortion_params.reshape(-1, 6)[:, None, :])
     u = cameras.fx.reshape(-1, 1) * a + cameras.cx.reshape(-1, 1)
     v = cameras.fy.reshape(-1, 1) * b + cameras.cy.reshape(-1, 1)
+    in_front = torch.where(fisheye, theta < torch.pi / 2 + 1e-6, z > 0)
     return torch.stack([u, v], dim=-1), in_front
 
 
