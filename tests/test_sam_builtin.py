@@ -164,6 +164,30 @@ def test_box_alone_keeps_the_object_at_its_centre_when_the_object_reaches_past_i
     assert iou(masks[0], expected) > 0.9
 
 
+def test_a_view_that_mostly_meets_nothing_decodes_its_seen_part(backend):
+    """A render whose rays meet nothing on two thirds of the cells (the viewer's wide view past the space that two
+    training cameras see, `min_views`): those cells' features are zero and their depth the far end. A click on an
+    object in the seen part gives the object, as in a view of the seen part alone (with their median norm, zero,
+    the features were scaled up a millionfold and the mask was a single cell)."""
+    rng = np.random.default_rng(0)
+    raw = np.zeros((64, 64, 16))
+    raw[:48, :, 0] = np.linspace(0.6, 1.0, 64)[None]  # a wall of a 64x48 image, one pixel per cell
+    raw[20:32, 24:34] = 0.0
+    raw[20:32, 24:34, 1] = 1.0  # the object
+    raw[:48] += rng.normal(0.0, 0.02, raw[:48].shape)  # a render's noise
+    depth = np.where(np.arange(64)[:, None] < 48, 5.0, 0.0) * np.ones((1, 64))
+    depth[20:32, 24:34] = 2.0
+    seen = np.zeros((64, 64), dtype=bool)
+    seen[12:40, 16:44] = True  # 28 x 28 of the 64 x 48 cells
+    raw[~seen] = 0.0  # empty cells; their depth, the far end, is the wall's
+    expected = np.zeros((48, 64), dtype=bool)
+    expected[20:32, 24:34] = True
+    features = np.einsum("kr,hwr->khw", backend._projection, raw).astype(np.float32)
+    for embedding in (Embedding(features, (48, 64)), Embedding(features, (48, 64), depth.astype(np.float32))):
+        masks, _ = backend.decode(embedding, np.array([[28.5, 25.5]]), np.array([1]))
+        assert iou(masks[0], expected) > 0.8
+
+
 def test_depth_cue_separates_an_object_of_the_background_colour(backend):
     """A shirt of exactly the wall's shading, with dark trousers below it, in front of the wall (depth 2 against 5):
     the features alone cannot tell the shirt from the wall; with the rendered depth at the cells (`Embedding.depth`)
@@ -203,6 +227,29 @@ def test_depth_cue_joins_the_parts_of_a_person_but_not_the_rug_they_stand_on(bac
     masks, _ = backend.decode(with_true_depth(encoded, depth), np.array([[80.5, 50.5]]), np.array([1]))
     assert iou(masks[0], shirt | trousers) > 0.75
     assert np.count_nonzero(masks[0] & rug) < 0.2 * np.count_nonzero(rug)
+
+
+def test_a_click_on_a_person_at_the_image_edge_leaves_the_floor_in_front_of_them(backend):
+    """A person at the left edge of the view, of nearly the floor's colour, on a floor that comes nearer towards the
+    bottom of the image (`panoptic`'s person 0 at camera 00): the floor in front of their feet is at their depth,
+    and at the granularities without a depth cue the click's segment takes it (IoU about 0.2). With the cue the
+    decoder segments finer and ranks the candidates also by the share of their outline in front of what surrounds
+    them, which the floor carrying on into the floor lowers."""
+    rows = np.arange(48)[:, None] * np.ones((1, 64))
+    person = np.zeros((48, 64), dtype=bool)
+    person[8:40, :8] = True
+    depth = np.zeros((64, 64))
+    depth[:48] = np.where(rows < 24, 6.0, 6.0 - (rows - 24) / 24 * 5.0)  # the wall, then the floor coming nearer
+    depth[:48][person] = 6.0 - (40 - 24) / 24 * 5.0  # where the feet stand
+    for seed in range(6):  # a render's noise
+        raw = np.zeros((64, 64, 16))
+        wall = (rows < 24) & ~person
+        raw[:48, :, 0], raw[:48, :, 1] = wall, ~wall  # the person has the floor's colour ...
+        raw[:48][person, 2] = 0.1  # ... nearly
+        raw[:48] += np.random.default_rng(seed).normal(0.0, 0.02, raw[:48].shape)
+        features = np.einsum("kr,hwr->khw", backend._projection, raw).astype(np.float32)
+        masks, _ = backend.decode(Embedding(features, (48, 64), depth.astype(np.float32)), np.array([[4.5, 20.5]]))
+        assert iou(masks[0], person) > 0.8, seed
 
 
 def test_depth_map_at_another_resolution_gives_the_cue_at_the_cells(backend):

@@ -40,6 +40,22 @@ class Embedding:
 CUE_FEATURE_NORM = 0.75
 """Median norm that cell features are scaled to before the log depth goes beside them (`with_depth_cue`)."""
 
+EMPTY_CELL_NORM = 1e-3
+"""A cell whose feature norm is below this share of the largest carries no features (`median_norm`)."""
+
+
+def median_norm(features: np.ndarray) -> float:
+    """Median feature norm of the cells (rows, cols, C) that carry features; 0 when none does.
+
+    Cells that carry none are left out: rays of a render that meet nothing (space that too few training cameras
+    see, `GearNeRFModelConfig.min_views`) and black pixels of an image. A view that reaches past what the cameras
+    saw, such as the viewer's wide one, can have more of them than not, and their zero median would scale
+    everything else up a millionfold (the segmentation then split a clicked object into single cells).
+    """
+    norms = np.linalg.norm(features, axis=-1)
+    carrying = norms[norms > EMPTY_CELL_NORM * norms.max()] if norms.size else norms
+    return float(np.median(carrying)) if carrying.size else 0.0
+
 
 def valid_depth(embedding: Embedding) -> Optional[np.ndarray]:
     """An embedding's depth cue on its valid cells (rows, cols); rays that meet nothing (an infinite or undefined
@@ -61,13 +77,13 @@ def log_depth(depth: Optional[np.ndarray]) -> Optional[np.ndarray]:
 
 
 def with_depth_cue(features: np.ndarray, logs: Optional[np.ndarray]) -> np.ndarray:
-    """Features (rows, cols, C) of an embedding's valid cells with its depth cue beside them: scaled to a median
-    norm of CUE_FEATURE_NORM, with the log depth (`log_depth`) as one more channel, so that a depth ratio of e (a
+    """Features (rows, cols, C) of an embedding's valid cells with its depth cue beside them: scaled to a
+    `median_norm` of CUE_FEATURE_NORM, with the log depth (`log_depth`) as one more channel, so that a depth ratio of e (a
     person two units in front of a wall five units away is a ratio of 2.5) weighs as much as a typical feature.
     Unchanged without a depth."""
     if logs is None:
         return features
-    scale = CUE_FEATURE_NORM / max(float(np.median(np.linalg.norm(features, axis=-1))), 1e-12)
+    scale = CUE_FEATURE_NORM / max(median_norm(features), 1e-12)
     return np.concatenate([features * scale, logs[..., None]], axis=-1)
 
 
