@@ -252,6 +252,27 @@ def test_a_click_on_a_person_at_the_image_edge_leaves_the_floor_in_front_of_them
         assert iou(masks[0], person) > 0.8, seed
 
 
+def test_a_box_around_a_person_and_the_wall_beside_them_gives_the_person(backend):
+    """Tracking prompts each frame with the box of the last frame's mask, which takes in some of the wall beside a
+    person; a strip of light on that wall lies wholly inside the box and would fill it better. With the depth cue the
+    box's candidates are ranked also by the share of their outline in front of what surrounds them: the person (a
+    mask that took the strip grew the next box, frame after frame, on `panoptic`)."""
+    raw = np.zeros((64, 64, 16))
+    raw[:48, :, 0] = 1.0  # the wall
+    person, strip = np.zeros((48, 64), dtype=bool), np.zeros((48, 64), dtype=bool)
+    person[10:40, 20:30], strip[14:36, 30:34] = True, True
+    raw[:48][person | strip] = 0.0
+    raw[:48][person, 1], raw[:48][strip, 2] = 1.0, 1.0
+    depth = np.zeros((64, 64), dtype=np.float32)
+    depth[:48] = np.where(person, 2.0, 5.0)
+    features = np.einsum("kr,hwr->khw", backend._projection, raw).astype(np.float32)
+    box = np.array([18.0, 8.0, 36.0, 42.0])
+    without, _ = backend.decode(Embedding(features, (48, 64)), box=box)
+    masks, _ = backend.decode(Embedding(features, (48, 64), depth), box=box)
+    assert iou(without[0], person) < 0.8  # the person and the strip
+    assert iou(masks[0], person) > 0.9
+
+
 def test_depth_map_at_another_resolution_gives_the_cue_at_the_cells(backend):
     """The gear updates' path: a depth map rendered at the loss map's size (here 128 x 96 for a 160 x 120 image)
     becomes the cue at the cells (`cell_depth`, nearest pixel: an edge stays an edge, the padding stays zero) and

@@ -78,9 +78,9 @@ def log_depth(depth: Optional[np.ndarray]) -> Optional[np.ndarray]:
 
 def with_depth_cue(features: np.ndarray, logs: Optional[np.ndarray]) -> np.ndarray:
     """Features (rows, cols, C) of an embedding's valid cells with its depth cue beside them: scaled to a
-    `median_norm` of CUE_FEATURE_NORM, with the log depth (`log_depth`) as one more channel, so that a depth ratio of e (a
-    person two units in front of a wall five units away is a ratio of 2.5) weighs as much as a typical feature.
-    Unchanged without a depth."""
+    `median_norm` of CUE_FEATURE_NORM, with the log depth (`log_depth`) as one more channel, so that a depth ratio
+    of e (a person two units in front of a wall five units away is a ratio of 2.5) weighs as much as a typical
+    feature. Unchanged without a depth."""
     if logs is None:
         return features
     scale = CUE_FEATURE_NORM / max(median_norm(features), 1e-12)
