@@ -232,9 +232,9 @@ def test_depth_cue_joins_the_parts_of_a_person_but_not_the_rug_they_stand_on(bac
 def test_a_click_on_a_person_at_the_image_edge_leaves_the_floor_in_front_of_them(backend):
     """A person at the left edge of the view, of nearly the floor's colour, on a floor that comes nearer towards the
     bottom of the image (`panoptic`'s person 0 at camera 00): the floor in front of their feet is at their depth,
-    and at the granularities without a depth cue the click's segment takes it (IoU about 0.2). With the cue the
+    and with the candidates ranked by their stability alone the mask took it (IoU about 0.2). With the cue the
     decoder segments finer and ranks the candidates also by the share of their outline in front of what surrounds
-    them, which the floor carrying on into the floor lowers."""
+    them, which a mask that takes the floor lowers: the floor carries on into the rest of the floor."""
     rows = np.arange(48)[:, None] * np.ones((1, 64))
     person = np.zeros((48, 64), dtype=bool)
     person[8:40, :8] = True
