@@ -63,9 +63,9 @@ def world_positions(
 
 class SeenSpace:
     """Whether points are seen by at least ``min_views`` of the training cameras (`views_seeing`; all of them when
-    there are fewer), looked up on a
-    GRID^3 grid over a field's plane coordinates (`planes.normalize_positions`), made once from the cells' centres:
-    a render's millions of samples then cost an indexing instead of a projection into every camera."""
+    there are fewer), looked up on a GRID^3 grid over a field's plane coordinates (`planes.normalize_positions`),
+    made once from the cells' centres: a render's millions of samples then cost an indexing instead of a
+    projection into every camera."""
 
     GRID = 128
     """Cells per side: a cell is 1/64 of the scene box's side (of the inner box when contracted)."""

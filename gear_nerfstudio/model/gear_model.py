@@ -105,9 +105,10 @@ class GearNeRFModelConfig(ModelConfig):
     """Renders in evaluation mode (ns-eval, ns-render, the viewer, ns-gear-track) take the density only where at least
     this many training cameras (all of a smaller rig's) see a point (`fields.seen_space`); elsewhere the field was
     fitted from one view or none, and at a novel view it shows as near blobs. 0 (the default) renders all space:
-    at 2, a view wider than the rig's (the viewer's) has empty cells, and the built-in SAM stand-in then gave a
-    click on a sphere 0.04 % of the view instead of 1.25 %. Training, and the gear updates' renders of training
-    views (`all_space`), always see all space."""
+    at 2, a view wider than the rig's (the viewer's) reaches past the seen space, and there the built-in SAM
+    stand-in gave a click on a sphere 8.5-10 % of the view instead of about 1.2 % (tracking_real.md in
+    benchmarks/results). Training, and the gear updates' renders of training views (`all_space`), always see all
+    space."""
     initial_density: Optional[float] = None
     """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's
     initialisation, about exp(-1) = 0.37 (K-Planes)."""
@@ -514,22 +515,23 @@ class GearNeRFModel(Model):
         seen = None
         if self.config.min_views > 0:
             seen = SeenSpace(cameras, self.config.min_views, self.field.aabb, self.field.spatial_distortion)
-        for field in [self.field, *self.proposal_networks]:
-            field.seen_space = seen
+        self._set_seen_space(seen)
 
     @contextlib.contextmanager
     def all_space(self) -> Iterator[None]:
         """Inside, renders take the density everywhere (``see_from`` is set aside), as training does: the gear
         updates render training views so."""
-        fields = [self.field, *self.proposal_networks]
-        before = [field.seen_space for field in fields]
-        for field in fields:
-            field.seen_space = None
+        seen = self.field.seen_space
+        self._set_seen_space(None)
         try:
             yield
         finally:
-            for field, seen in zip(fields, before):
-                field.seen_space = seen
+            self._set_seen_space(seen)
+
+    def _set_seen_space(self, seen: Optional[SeenSpace]) -> None:
+        """The field and the proposal networks share one ``seen_space``."""
+        for field in [self.field, *self.proposal_networks]:
+            field.seen_space = seen
 
     @torch.no_grad()
     def visible_surface(self, camera: Cameras, outputs: Dict[str, Tensor]) -> Float[Tensor, "H W 3"]:
