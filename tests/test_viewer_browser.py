@@ -194,9 +194,10 @@ def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained,
 
 
 def test_moving_the_time_slider_renders_each_new_time_once(trained, loaded, monkeypatch):
-    """With an object selected, the viewer's SAM features are rendered once per (camera, time): sweeping the
+    """With an object selected, the viewer's SAM features are rendered once per (view, time): sweeping the
     slider over the T frames renders T feature maps (without the cache: 1 + 2 + ... + T, every frame between the
-    click and the slider at every step); a moved camera, or a training step, renders again."""
+    click and the slider at every step); the same view at another resolution (the viewer's still render after its
+    moving one) renders none and highlights the same mask; a moved camera, or a training step, renders again."""
     import gear_nerfstudio.tracking.viewer as viewer_module
 
     _, scene, _ = trained
@@ -220,6 +221,14 @@ def test_moving_the_time_slider_renders_each_new_time_once(trained, loaded, monk
         camera = viewer_camera(loaded, time_)
         tracking.overlay(camera, torch.zeros(int(camera.height), int(camera.width), 3))
     assert sorted(rendered) == times
+    small = viewer_camera(loaded, times[1])
+    large = viewer_camera(loaded, times[1], width=3 * int(small.width), height=3 * int(small.height))
+    mask = highlighted({"tracked_mask": tracking.overlay(small, torch.zeros(int(small.height), int(small.width), 3)),
+                        "rgb": torch.zeros(1)})  # fmt: skip
+    larger = highlighted({"tracked_mask": tracking.overlay(large, torch.zeros(int(large.height), int(large.width), 3)),
+                          "rgb": torch.zeros(1)})  # fmt: skip
+    assert mask.any() and len(rendered) == len(times)
+    assert np.array_equal(larger, mask.repeat(3, axis=0).repeat(3, axis=1))
     moved = viewer_camera(loaded, times[1], x_shift=0.01)
     tracking.overlay(moved, torch.zeros(int(moved.height), int(moved.width), 3))
     assert len(rendered) == len(times) + 2  # a new view: the click time and the slider's time
@@ -459,8 +468,9 @@ def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, bro
     assert 0.3 * truth_share < float(share.group(1)) / 100 < 3.0 * truth_share, (value, truth_share)
 
     # The output 'tracked_mask' highlights the selected object: the pixels turned greener cover the sphere, and
-    # they are as much of the view as the selection's mask (the status line's share; the low-resolution render
-    # spreads them by a render pixel or so). How well the built-in stand-in segments this blurry 400-iteration render
+    # they are as much of the view as the selection's mask (the status line's share; at the clicked time the viewer's
+    # render decodes the clicked view's own features, `viewer.sam_view`, and the low-resolution render spreads the
+    # mask by a render pixel or so). How well the built-in stand-in segments this blurry 400-iteration render
     # varies with the render's resolution (1 % to 4 % of the view for the same click): the tracking benchmarks
     # measure that, not this test.
     before = settled_view(driver, box, 60)

@@ -10,10 +10,12 @@ the prompts carried frame by frame to the time slider's time (`propagation.track
 
 Costs: nothing runs for renders that are not the viewer's (training steps, evaluation images, ns-eval,
 ns-render), while no object is selected, or while the viewer shows another output. The SAM features of a
-view are rendered at the centres of the backend's grid cells: at most grid_size^2 rays (64 x 64 for the
-built-in backend and SAM) per view and time, whatever the render's resolution ('Max res'). They are kept per
-time (until the camera moves or a training step changes the model), so moving the time slider renders only
-the times not rendered yet, not every frame between the click and the slider.
+view are rendered at the centres of the backend's grid cells, on the view scaled to grid_size pixels on its longer
+side (`sam_view`): grid_size^2 rays at most (64 x 64 for the built-in backend and SAM) per view and time, whatever
+the render's resolution ('Max res'), and the same rays at every resolution, so the mask does not change when the
+viewer goes from its moving to its still resolution, and at the clicked time it is the click's own. They are kept
+per time (until the camera moves or a training step changes the model), so moving the time slider or the
+resolution renders only the times not rendered yet.
 
 A click does not wait for the viewer's render in progress: nerfstudio holds the viewer's lock (`train_lock`)
 for a whole render, which at the default 'Max res' 512 takes minutes on a CPU, and wraps every GUI callback
@@ -24,9 +26,13 @@ CPU. The status text says "Selecting..." meanwhile, then the selection or why th
 the log.
 
 The viewer decodes the SAM features alone, without the depth cue that `ns-gear-track` gives the built-in decoder
-(`features_only`): on the browser test's model, trained for 400 iterations, the cue made a click on a sphere select
-a strand of floor (16.8 % of the view against the sphere's 1.5 %; without it, 1.0 %). The decoder cannot yet tell
-a depth map that is a surface from one that is not.
+(`features_only`). In a view as the viewer renders it (75 degrees, 64 pixels on the longer side, at the held-out
+camera's pose), one click per object (benchmarks/viewer_clicks.py, 3 trained runs each; tracking_real.md) gave the
+built-in stand-in a mask of mean IoU 85.3 on the features alone and 70.9 with the cue on the synthetic scenes
+(spheres of distinct colours), but 9.8 and 56.7 for a person on the real `panoptic` capture (20.5 and 58.0 on the
+31 cameras). On the browser test's model (400 iterations, 32x24 images) the cue made a click on a sphere take a third
+of the view (the sphere: 1.5 %). Neither decoding serves both kinds of scene, so the viewer keeps the features alone
+until the decoder can weigh the two.
 
 The pipeline owns this module and hands it the SAM backend; the model only calls its render hook.
 """
@@ -34,6 +40,7 @@ The pipeline owns this module and hands it the SAM backend; the model only calls
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time as clock
 import weakref
@@ -47,6 +54,7 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerClick, ViewerControl, ViewerText
+from PIL import Image
 from torch import Tensor
 
 from gear_nerfstudio.sam.interface import Embedding, SamBackend
@@ -74,6 +82,43 @@ def features_only(embedding: Embedding) -> Embedding:
     return Embedding(embedding.features, embedding.image_size)
 
 
+FOV_TOLERANCE = 1e-4
+"""Largest difference of vertical field of view (radians) between two renders of one view."""
+
+
+def sam_view(camera: Cameras, grid_size: int) -> Cameras:
+    """A single pinhole camera scaled to grid_size pixels on its longer side: a pixel of it is a cell of SAM's
+    grid, so its SAM features are the same rays at any resolution of the camera."""
+    scale = grid_size / max(int(camera.width), int(camera.height))
+    return Cameras(
+        camera_to_worlds=camera.camera_to_worlds,
+        fx=camera.fx * scale,
+        fy=camera.fy * scale,
+        cx=camera.cx * scale,
+        cy=camera.cy * scale,
+        width=max(int(round(int(camera.width) * scale)), 1),
+        height=max(int(round(int(camera.height) * scale)), 1),
+        camera_type=camera.camera_type,
+        times=camera.times,
+    )
+
+
+def same_view(camera: Cameras, other: Cameras) -> bool:
+    """Whether two single cameras show one view at two resolutions: the same pose and vertical field of view
+    (within FOV_TOLERANCE), and aspect ratios that differ by no more than the rounding of each image's width to
+    whole pixels (1 / height each)."""
+
+    def shape(c: Cameras) -> Tuple[float, float, float]:
+        return 2.0 * math.atan(float(c.cy) / float(c.fy)), float(c.cx) / float(c.cy), float(c.height)
+
+    (fov, aspect, height), (other_fov, other_aspect, other_height) = shape(camera), shape(other)
+    return (
+        torch.equal(camera.camera_to_worlds.cpu(), other.camera_to_worlds.cpu())
+        and abs(fov - other_fov) < FOV_TOLERANCE
+        and abs(aspect - other_aspect) <= 1.0 / height + 1.0 / other_height
+    )
+
+
 @dataclass
 class Selection:
     """A clicked object: the 3D point its click ray meets and the time of the click."""
@@ -94,12 +139,6 @@ def shows(thread: "RenderStateMachine", output: str) -> bool:
     """Whether the viewer of a render thread shows `output` (in full or in its split screen)."""
     panel = thread.viewer.control_panel
     return output == panel.output_render or (panel.split and output == panel.split_output_render)
-
-
-def view_key(camera: Cameras) -> Tuple[float, ...]:
-    """The pose and intrinsics of a single camera: two renders with the same key see the same image."""
-    values = [camera.camera_to_worlds, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height]
-    return tuple(float(v) for value in values for v in value.reshape(-1).tolist())
 
 
 def ray_camera(origin: Float[Tensor, "3"], direction: Float[Tensor, "3"]) -> Cameras:
@@ -177,7 +216,8 @@ class ViewerTracking(torch.nn.Module):
         self.selection: Optional[Selection] = None
         self.embeddings: Dict[float, Embedding] = {}
         """Rendered SAM features of the viewer camera ``self.view`` by time."""
-        self.view: Optional[Tuple[float, ...]] = None
+        self.view: Optional[Cameras] = None
+        """The last clicked or rendered view (`sam_view`) whose features are kept."""
         self.viewer_control = TrackingViewerControl(self._without_lock)
         self.select_button = ViewerButton("Select object (then click it)", cb_hook=self._arm)
         self.clear_button = ViewerButton("Clear selection", cb_hook=self._clear)
@@ -241,8 +281,8 @@ class ViewerTracking(torch.nn.Module):
     def mask_share(self, view: Cameras, point: Float[Tensor, "3"], time: float) -> float:
         """Share of `view` that the mask prompted by `point` at `time` covers (its SAM features: at most
         grid_size^2 rays); a TrackingError when the mask is empty."""
-        embedding = features_only(render_embedding(self._model(), view, time, self.backend))
-        mask = segment(self.backend, embedding, np.array([project_prompt(view, point)]), np.array([1]))
+        view = self._see(view)
+        mask = segment(self.backend, self._embedding(time), np.array([project_prompt(view, point)]), np.array([1]))
         if not mask.any():
             raise TrackingError("the decoder's mask for the clicked point is empty")
         return float(mask.mean())
@@ -265,21 +305,31 @@ class ViewerTracking(torch.nn.Module):
         selection = self.selection
         if selection is None:
             return rgb
-        model = self._model()
-        time = 0.0 if camera.times is None else float(camera.times.reshape(-1)[0])
+        view = self._see(camera)
         try:
-            pixel = project_prompt(camera, selection.point)
+            pixel = project_prompt(view, selection.point)
         except TrackingError:
             return rgb
-        view = view_key(camera)
-        if view != self.view:
-            self.view, self.embeddings = view, {}
+        time = 0.0 if camera.times is None else float(camera.times.reshape(-1)[0])
+        masks = track(
+            self.backend, self._embedding, np.array([pixel]), np.array([1]), selection.time, [time], self._model().num_frames
+        )
+        mask = next(m.mask for m in masks if m.time == time)
+        height, width = rgb.shape[:2]
+        if mask.shape != (height, width):
+            mask = np.array(Image.fromarray(mask).resize((width, height), Image.NEAREST))
+        return highlight(rgb, mask)
 
-        def embedding_at(time_: float) -> Embedding:
-            key = round(time_, TIME_DIGITS)  # the slider's float32 time and the frames' times meet
-            if key not in self.embeddings:
-                self.embeddings[key] = features_only(render_embedding(model, camera, time_, self.backend))
-            return self.embeddings[key]
+    def _see(self, camera: Cameras) -> Cameras:
+        """The kept view when `camera` shows it (`same_view`); else `camera` at SAM's grid (`sam_view`), kept from now
+        on in place of the last, whose features are dropped."""
+        if self.view is None or not same_view(camera, self.view):
+            self.view, self.embeddings = sam_view(camera, self.backend.grid_size), {}
+        return self.view
 
-        masks = track(self.backend, embedding_at, np.array([pixel]), np.array([1]), selection.time, [time], model.num_frames)
-        return highlight(rgb, next(m.mask for m in masks if m.time == time))
+    def _embedding(self, time: float) -> Embedding:
+        """The SAM features of the kept view at a time (`features_only`), rendered once."""
+        key = round(time, TIME_DIGITS)  # the slider's float32 time and the frames' times meet
+        if key not in self.embeddings:
+            self.embeddings[key] = features_only(render_embedding(self._model(), self.view, time, self.backend))
+        return self.embeddings[key]
