@@ -57,6 +57,9 @@ class ViewerClicks:
     def main(self) -> None:
         from nerfstudio.utils.eval_utils import eval_setup
 
+        from gear_nerfstudio.tracking.cli import dataset_cameras
+        from gear_nerfstudio.tracking.click import single_camera
+
         torch.set_num_threads(1)
         rows: Dict[Tuple[str, bool], List[float]] = {}
         print("| run | clicks | " + " | ".join(label(d) for d in DECODINGS) + " |\n|---|---|" + "---|" * len(DECODINGS))
@@ -65,10 +68,13 @@ class ViewerClicks:
             model = pipeline.model
             model.config.min_views = 2
             model.see_from(pipeline.datamanager.train_dataparser_outputs.cameras)
+            cameras, held_out = dataset_cameras(pipeline)
+            name = self.camera if self.masks is not None else held_out[0]
+            held = single_camera(cameras[name])
             scores: Dict[Tuple[str, bool], List[float]] = {}
             for frame in [f for f in self.frames if f < model.num_frames]:
                 picture = self.picture if index == 0 and frame == self.frames[0] else None
-                for key, value in self.frame_scores(pipeline, config, frame, picture).items():
+                for key, value in self.frame_scores(pipeline, config, held, name, frame, picture).items():
                     scores.setdefault(key, []).extend(value)
             for key, value in scores.items():
                 rows.setdefault(key, []).append(float(np.mean(value)))
@@ -77,22 +83,19 @@ class ViewerClicks:
         means = [f"{np.mean(rows[d]):.1f} ± {np.std(rows[d], ddof=1) if len(rows[d]) > 1 else 0.0:.1f}" for d in DECODINGS]
         print("| mean ± sd over runs | | " + " | ".join(means) + " |")
 
-    def frame_scores(self, pipeline, config: Path, frame: int, picture: Optional[Path]) -> Dict[Tuple[str, bool], List[float]]:
-        """IoU of each decoding for one click per object of the view at a frame."""
+    def frame_scores(
+        self, pipeline, config: Path, held, name: str, frame: int, picture: Optional[Path]
+    ) -> Dict[Tuple[str, bool], List[float]]:
+        """IoU of each decoding for one click per object of the view at a frame, at the pose of camera `held`."""
         from nerfstudio.cameras.cameras import CameraType
         from nerfstudio.viewer.utils import CameraState, get_camera
 
-        from gear_nerfstudio.tracking.cli import dataset_cameras
-        from gear_nerfstudio.tracking.click import single_camera
         from gear_nerfstudio.tracking.metrics import iou
         from gear_nerfstudio.tracking.propagation import render_embedding, render_rgb, segment
         from gear_nerfstudio.tracking.viewer import features_only
         from tracking_real import deepest_pixel
 
         model, backend = pipeline.model, pipeline.sam_backend
-        cameras, held_out = dataset_cameras(pipeline)
-        name = self.camera if self.masks is not None else held_out[0]
-        held = single_camera(cameras[name])
         time = frame / max(model.num_frames - 1, 1)
         state = CameraState(fov=FOV, aspect=WIDTH / HEIGHT, c2w=held.camera_to_worlds[0], camera_type=CameraType.PERSPECTIVE, time=time)
         view = get_camera(state, HEIGHT, WIDTH)
@@ -153,16 +156,18 @@ def label(decoding: Tuple[str, bool]) -> str:
 
 
 def write_picture(path: Path, rgb: np.ndarray, shown) -> None:
-    """One tile per decoding: the view with every click's mask in red and the clicks in blue."""
+    """One tile per decoding: the view with every click's mask and the click, drawn as `ns-gear-track` draws them
+    (`tracking.cli.overlay`)."""
+    from gear_nerfstudio.tracking.cli import overlay
+
+    scale = rgb.shape[1] / WIDTH
     tiles = []
     for decoding in DECODINGS:
-        tile = rgb.copy()
+        tile = rgb
         for space, cue, mask, (x, y) in shown:
-            if (space, cue) != decoding:
-                continue
-            big = np.asarray(Image.fromarray(mask).resize((rgb.shape[1], rgb.shape[0]), Image.NEAREST))
-            tile[big] = (0.4 * tile[big] + 0.6 * np.array([255, 0, 0])).astype(np.uint8)
-            tile[max(int(3 * y) - 1, 0) : int(3 * y) + 2, max(int(3 * x) - 1, 0) : int(3 * x) + 2] = (0, 0, 255)
+            if (space, cue) == decoding:
+                big = np.array(Image.fromarray(mask).resize((rgb.shape[1], rgb.shape[0]), Image.NEAREST))
+                tile = overlay(tile, big, {"points": [(scale * x, scale * y)], "labels": [1]})
         tiles.append(tile)
     Image.fromarray(np.concatenate(tiles, axis=1)).save(path)
     print(f"wrote {path} (tiles: " + "; ".join(label(d) for d in DECODINGS) + ")")

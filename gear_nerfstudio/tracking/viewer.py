@@ -40,6 +40,7 @@ The pipeline owns this module and hands it the SAM backend; the model only calls
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import threading
 import time as clock
@@ -87,20 +88,12 @@ FOV_TOLERANCE = 1e-4
 
 
 def sam_view(camera: Cameras, grid_size: int) -> Cameras:
-    """A single pinhole camera scaled to grid_size pixels on its longer side: a pixel of it is a cell of SAM's
-    grid, so its SAM features are the same rays at any resolution of the camera."""
-    scale = grid_size / max(int(camera.width), int(camera.height))
-    return Cameras(
-        camera_to_worlds=camera.camera_to_worlds,
-        fx=camera.fx * scale,
-        fy=camera.fy * scale,
-        cx=camera.cx * scale,
-        cy=camera.cy * scale,
-        width=max(int(round(int(camera.width) * scale)), 1),
-        height=max(int(round(int(camera.height) * scale)), 1),
-        camera_type=camera.camera_type,
-        times=camera.times,
-    )
+    """A copy of a single camera scaled to grid_size pixels on its longer side (nerfstudio's
+    `rescale_output_resolution`): a pixel of it is a cell of SAM's grid, so its SAM features are the same rays at
+    any resolution of the camera."""
+    view = copy.deepcopy(camera)
+    view.rescale_output_resolution(grid_size / max(int(camera.width), int(camera.height)), scale_rounding_mode="round")
+    return view
 
 
 def same_view(camera: Cameras, other: Cameras) -> bool:
