@@ -1,7 +1,7 @@
 """The viewer's click decode (Sec 4.5, `tracking/viewer.py`) on trained runs: one click per object in a view as the
 viewer renders it (viser's 75-degree vertical field of view, aspect 1.5, 64 pixels on the longer side as a click
-decodes, at the held-out camera's pose), decoded by the built-in SAM stand-in on the SAM features alone (what the
-viewer does) and with the depth cue (what `ns-gear-track` does), over all space and where 2 training cameras see
+decodes, at the held-out camera's pose), decoded by the built-in SAM stand-in on the SAM features alone and with
+the depth cue (what the viewer and `ns-gear-track` do), over all space (the default) and where 2 training cameras see
 (`min_views`). IoU against the truth in that view:
 - a real capture (`--masks`): the held-out camera's person components (`tracking_real.people`) mapped into the
   wider view and scored inside the held-out camera's frame (outside it nothing is known);
@@ -90,9 +90,9 @@ class ViewerClicks:
         from nerfstudio.cameras.cameras import CameraType
         from nerfstudio.viewer.utils import CameraState, get_camera
 
+        from gear_nerfstudio.sam.interface import Embedding
         from gear_nerfstudio.tracking.metrics import iou
         from gear_nerfstudio.tracking.propagation import render_embedding, render_rgb, segment
-        from gear_nerfstudio.tracking.viewer import features_only
         from tracking_real import deepest_pixel
 
         model, backend = pipeline.model, pipeline.sam_backend
@@ -109,7 +109,9 @@ class ViewerClicks:
         for truth in truths:
             x, y = deepest_pixel(truth)
             for space, cue in DECODINGS:
-                embedding = embeddings[space] if cue else features_only(embeddings[space])
+                embedding = embeddings[space]
+                if not cue:
+                    embedding = Embedding(embedding.features, embedding.image_size)
                 mask = segment(backend, embedding, np.array([[x, y]]), np.array([1]))
                 scores.setdefault((space, cue), []).append(100.0 * iou(mask & known, truth))
                 shown.append((space, cue, mask, (x, y)))

@@ -31,7 +31,7 @@ from gear_nerfstudio.tools.synthetic.scene import RigCamera, SyntheticScene, sce
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from gear_nerfstudio.tracking.click import project_prompt
 from gear_nerfstudio.tracking.propagation import render_embedding, track
-from gear_nerfstudio.tracking.viewer import OUTPUT, Selection, features_only, highlight
+from gear_nerfstudio.tracking.viewer import OUTPUT, Selection, highlight
 from gear_nerfstudio.viewer_speed import STILL_SECONDS, moving_rate, still_resolution
 from tests.conftest import BIN, ns
 
@@ -165,8 +165,7 @@ def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained,
 
     # The static sphere selected at time 0 (as a click on it would store it), seen at times 0 and 1: at the
     # clicked time the mask is the object's; at every time the viewer shows exactly the mask that tracking
-    # (ns-gear-track's propagation) gives for the viewer's camera and time on the features alone (the viewer
-    # leaves out the depth cue).
+    # (ns-gear-track's propagation) gives for the viewer's camera and time.
     tracking.selection = Selection(point=surface_point(loaded, scene, STATIC_SPHERE, 0, "cam00"), time=0.0)
     for frame in (0, SPEC.frames - 1):
         time = frame / (SPEC.frames - 1)
@@ -174,8 +173,8 @@ def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained,
         outputs = viewer_render(model, camera)
         x, y = project_prompt(camera, tracking.selection.point)
         backend = loaded.sam_backend
-        tracked = track(backend, lambda t: features_only(render_embedding(model, camera, t, backend)),
-                        np.array([[x, y]]), np.array([1]), 0.0, [time], SPEC.frames)  # fmt: skip
+        tracked = track(backend, lambda t: render_embedding(model, camera, t, backend), np.array([[x, y]]), np.array([1]),
+                        0.0, [time], SPEC.frames)  # fmt: skip
         expected = next(m.mask for m in tracked if m.time == time)
         assert expected.any() and torch.equal(outputs["tracked_mask"], highlight(outputs["rgb"], expected)), frame
         assert "tracked_mask" not in model.get_outputs_for_camera(camera)  # not a viewer render

@@ -25,14 +25,13 @@ ray for the point, one feature map and one decoding for the mask in the clicked 
 CPU. The status text says "Selecting..." meanwhile, then the selection or why there is none; both go to
 the log.
 
-The viewer decodes the SAM features alone, without the depth cue that `ns-gear-track` gives the built-in decoder
-(`features_only`). In a view as the viewer renders it (75 degrees, 64 pixels on the longer side, at the held-out
-camera's pose), one click per object (benchmarks/viewer_clicks.py, 3 trained runs each; tracking_real.md) gave the
-built-in stand-in a mask of mean IoU 85.3 on the features alone and 70.9 with the cue on the synthetic scenes
-(spheres of distinct colours), but 9.8 and 56.7 for a person on the real `panoptic` capture (20.5 and 58.0 on the
-31 cameras). On the browser test's model (400 iterations, 32x24 images) the cue made a click on a sphere take a third
-of the view (the sphere: 1.5 %). Neither decoding serves both kinds of scene, so the viewer keeps the features alone
-until the decoder can weigh the two.
+The viewer decodes the rendered SAM features with the depth cue, as `ns-gear-track` does. In a view as the viewer
+renders it (75 degrees, 64 pixels on the longer side, at the held-out camera's pose), one click per object
+(benchmarks/viewer_clicks.py, 3 trained runs each; tracking_real.md) gave the built-in stand-in a mask of mean IoU
+9.8 on the features alone and 56.8 with the cue for a person on the real `panoptic` capture (20.5 and 58.0 on the 31
+cameras), and 85.3 and 77.6 on the synthetic spheres, where two spheres that touch at one depth are one object to the
+cue. The decoder ranks the features alone's candidates beside the cue's (`builtin_backend`); with the cue alone, a
+click on a sphere of the browser test's model (400 iterations, 32x24 images) had taken a third of the view.
 
 The pipeline owns this module and hands it the SAM backend; the model only calls its render hook.
 """
@@ -76,11 +75,6 @@ HIGHLIGHT_WEIGHT = 0.6
 """Share of the highlight colour in a masked pixel."""
 TIME_DIGITS = 6
 """Decimals of a time as a key of the kept features (float32 camera times and float64 frame times agree)."""
-
-
-def features_only(embedding: Embedding) -> Embedding:
-    """The embedding without its depth cue (see the module docstring)."""
-    return Embedding(embedding.features, embedding.image_size)
 
 
 FOV_TOLERANCE = 1e-4
@@ -321,8 +315,8 @@ class ViewerTracking(torch.nn.Module):
         return self.view
 
     def _embedding(self, time: float) -> Embedding:
-        """The SAM features of the kept view at a time (`features_only`), rendered once."""
+        """The SAM features (and depth cue) of the kept view at a time, rendered once."""
         key = round(time, TIME_DIGITS)  # the slider's float32 time and the frames' times meet
         if key not in self.embeddings:
-            self.embeddings[key] = features_only(render_embedding(self._model(), self.view, time, self.backend))
+            self.embeddings[key] = render_embedding(self._model(), self.view, time, self.backend)
         return self.embeddings[key]
