@@ -187,6 +187,7 @@ def test_a_selection_gives_a_tracked_mask_at_the_viewer_camera_and_time(trained,
             assert (mask & near_prompt).any(), "the mask misses the selected point"
             assert (mask & truth).sum() > 0.3 * truth.sum(), "the mask misses the object"
             assert mask.sum() < 0.5 * mask.size, "the mask covers half the view"
+    assert tracking.embeddings and all(e.depth is not None for e in tracking.embeddings.values())  # with the cue
     shows_rgb = viewer_render(model, camera, shown="rgb")
     assert shows_rgb["tracked_mask"] is shows_rgb["rgb"]
     tracking.selection = None
