@@ -3,6 +3,7 @@ real `ns-train` on a tiny synthetic N3D scene with ground-truth object masks."""
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import subprocess
@@ -15,7 +16,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from PIL import Image
 from scipy import ndimage
 
-from gear_nerfstudio.tracking import cli, propagation
+from gear_nerfstudio.tracking import agreement, cli, propagation
 from gear_nerfstudio.tracking.cli import TrackCommand
 from tests.conftest import command as run
 from gear_nerfstudio.tracking.metrics import MaskScore, accuracy, iou, summarise
@@ -266,6 +267,7 @@ def perfect_model(trained, loaded, monkeypatch):
     monkeypatch.setattr(cli, "render_embedding", perfect.embedding)
     monkeypatch.setattr(cli, "view_depth", perfect.depth)
     monkeypatch.setattr(propagation, "render_embedding", perfect.embedding)
+    monkeypatch.setattr(agreement, "render_embedding", perfect.embedding)
     return perfect
 
 
@@ -305,6 +307,40 @@ def test_sphere_clicks_are_not_warned_and_wall_and_floor_clicks_are(
     else:
         assert summary["click"]["background"] is False and front > IN_FRONT
         assert warnings == [] and summary["masks_covering_most_of_view"] == 0
+
+
+def test_multi_view_agreement_gives_back_the_part_of_an_object_that_a_mask_left_out(trained, loaded, monkeypatch):
+    """Multi-view agreement (`agreement.agreed_mask`) on what a perfect model renders (`PerfectRender`, its depth in
+    the model's units), every camera at 3 times its resolution: the fast sphere's true mask at the held-out cam00 at
+    time 0.5 with its lower half taken out (as the decoder leaves out a person's legs), lifted with the depth into
+    the 4 training cameras, where the sphere's point prompts the decoder: the lower half comes back, and little else."""
+    _, pipeline = loaded
+    perfect = PerfectRender(trained[1], pipeline)
+
+    def rendered(model, camera, time, backend):
+        embedding = perfect.embedding(model, camera, time, backend)
+        return Embedding(embedding.features, embedding.image_size, embedding.depth * perfect.scale)
+
+    monkeypatch.setattr(agreement, "render_embedding", rendered)
+    backend = pipeline.sam_backend
+
+    def larger(name: str) -> Cameras:
+        camera = copy.deepcopy(dataset_camera(pipeline, name))
+        camera.rescale_output_resolution(3.0)
+        return camera
+
+    target = larger("cam00")
+    truth = perfect.render(target, 0.5).object_ids == FAST_SPHERE
+    x, y = deepest_pixel(truth)
+    embedding = rendered(pipeline.model, target, 0.5, backend)
+    scale = backend.grid_size / max(embedding.image_size)
+    point = agreement.cell_points(target, embedding)[int(y * scale), int(x * scale)]  # the sphere's surface
+    upper = truth & (np.arange(truth.shape[0])[:, None] < y)
+    views = [larger(name) for name in ("cam01", "cam02", "cam03", "cam04")]
+    agreed = agreement.agreed_mask(pipeline.model, backend, target, embedding, upper, [point], np.ones(1), views, 0.5)
+    assert (agreed >= upper).all()  # cells are only added
+    assert iou(upper, truth) < 0.6 and iou(agreed, truth) > 0.8, (iou(upper, truth), iou(agreed, truth))
+    assert (agreed & ~truth).sum() < 0.2 * truth.sum()
 
 
 def test_time_outside_0_1_is_refused_before_loading(trained, tmp_path):

@@ -28,6 +28,7 @@ import shutil
 import sys
 import tempfile
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -40,6 +41,7 @@ from gear_nerfstudio.data_parsers.multiview import cameras_by_name
 from gear_nerfstudio.sam.interface import cell_centres
 from gear_nerfstudio.tools.synthetic.ground_truth import GroundTruth
 from gear_nerfstudio.tools.video import write_video
+from gear_nerfstudio.tracking.agreement import agreed_mask
 from gear_nerfstudio.tracking.metrics import score, summarise
 from gear_nerfstudio.tracking.click import (
     HIT_ACCUMULATION,
@@ -99,6 +101,9 @@ class TrackCommand:
     """Prompt at t +- 1: "box" (the mask's box, the paper) or "embedding" (ours: the same, but when the
     box's mask disagrees with the cells whose rendered features match the object's, points spread over
     those cells and their box prompt again)."""
+    agreement: bool = True
+    """Refine each target view's mask at the clicked time by multi-view agreement: add the cells that the object's
+    masks in most training views that see them, at the same time, put inside it (`agreement.agreed_mask`)."""
     min_accumulation: float = HIT_ACCUMULATION
     """A click ray whose accumulated density stays below this hits nothing (lower it for a model trained
     only briefly, whose density is still faint)."""
@@ -196,6 +201,7 @@ class Plan:
     click_check: Dict[str, Any]  # the clicks' mask in the clicked view: its shares (`click.check_click`)
     warnings: List[str]  # signs that the click missed its object (`click.check_click`)
     views: Dict[str, Any]  # name -> Cameras
+    training_views: Dict[str, Any]  # name -> Cameras of the training cameras (multi-view agreement)
     view_pixels: Dict[str, np.ndarray]  # name -> (N, 2) projected prompts
     times: List[float]
     ground_truth: Optional[GroundTruth]
@@ -278,9 +284,10 @@ class Plan:
             click_name, click_time, mask, mask_cells(mask, backend.grid_size), depth, pixels.tolist(),
             labels.tolist(), hits, None if target_object is None else target_object == BACKGROUND_ID,
         )
+        training_views = {name: camera for name, camera in cameras.items() if name not in held_out}
         return cls(
-            pipeline, click_name, click_time, pixels, labels, hits, click_check, warnings, views, view_pixels,
-            times, ground_truth, target_object,
+            pipeline, click_name, click_time, pixels, labels, hits, click_check, warnings, views, training_views,
+            view_pixels, times, ground_truth, target_object,
         )
 
     def write(self, command: TrackCommand, header: Dict[str, Any]) -> Dict[str, Any]:
@@ -307,6 +314,10 @@ class Plan:
         num_frames = int(getattr(model, "num_frames", 1))
         records, scores = [], []
         for name, camera in self.views.items():
+            others = [view for other, view in self.training_views.items() if other != name]
+            points = [hit.point for hit in self.hits]
+            refine = partial(agreed_mask, model, backend, camera, points=points, labels=self.labels, views=others,
+                             time=self.click_time) if command.agreement else None  # fmt: skip
             tracked = track_view(
                 model,
                 backend,
@@ -317,6 +328,7 @@ class Plan:
                 self.times,
                 num_frames,
                 command.propagation,
+                refine,
             )
             frames = []
             for item in tracked:

@@ -251,10 +251,12 @@ def track(
     times: Sequence[float],
     num_frames: int,
     propagation: Propagation = "embedding",
+    refine: Optional[Callable[[Embedding, np.ndarray], np.ndarray]] = None,
 ) -> List[TrackedMask]:
     """Sec 4.5 on any source of embeddings: masks at the clicked time and at `times`, sorted by time.
 
-    `pixels` (N, 2) with `labels` prompt the decoder on ``embedding_at(click_time)``; then each mask
+    `pixels` (N, 2) with `labels` prompt the decoder on ``embedding_at(click_time)``, and `refine` (the clicked
+    time's embedding, the mask) -> mask, when given, refines that mask (`agreement.agreed_mask`); then each mask
     prompts the next frame outwards (see the module docstring for the two propagations). A lost, empty
     mask hands on the last box.
     """
@@ -264,6 +266,8 @@ def track(
     times = [check_time(t) for t in times]
     clicked = embedding_at(click_time)
     first = segment(backend, clicked, pixels, labels)
+    if refine is not None:
+        first = refine(clicked, first)
     prompt = {"points": np.asarray(pixels).tolist(), "labels": np.asarray(labels).astype(int).tolist()}
     visited = {click_time: TrackedMask(click_time, first, prompt)}
     appearance = ObjectAppearance.of(clicked, first) if propagation == "embedding" else None
@@ -300,6 +304,7 @@ def track_view(
     times: Sequence[float],
     num_frames: int,
     propagation: Propagation = "embedding",
+    refine: Optional[Callable[[Embedding, np.ndarray], np.ndarray]] = None,
 ) -> List[TrackedMask]:
     """`track` on the SAM features the model renders for one target view (each time rendered once)."""
     rendered: Dict[float, Embedding] = {}
@@ -309,4 +314,4 @@ def track_view(
             rendered[time] = render_embedding(model, camera, time, backend)
         return rendered[time]
 
-    return track(backend, embedding_at, pixels, labels, click_time, times, num_frames, propagation)
+    return track(backend, embedding_at, pixels, labels, click_time, times, num_frames, propagation, refine)
