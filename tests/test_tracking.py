@@ -200,6 +200,7 @@ def test_one_click_tracks_to_the_held_out_view_at_every_time(trained):
     by_time = {record["time"]: record for record in summary["masks"]}
     assert sorted(by_time) == [0.0, 0.5, 1.0]
     assert "points" in by_time[0.5]["prompt"]  # the projected click at the clicked time
+    assert by_time[0.5]["prompt"]["refined_pixels"] >= 0  # multi-view agreement ran (on by default)
     (px, py), = by_time[0.5]["prompt"]["points"]
     assert 0 <= px < 24 and 0 <= py < 18
     for time in (0.0, 1.0):  # boxes of the clicked time's mask prompt its neighbours

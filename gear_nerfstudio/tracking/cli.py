@@ -6,8 +6,10 @@
 Clicks are pixels (x, y) of a dataset camera (`--click-camera`) or of one frame of a camera-path JSON
 as `ns-render camera-path` reads (`--click-camera-path`, `--click-frame`). Targets are dataset cameras
 (default: the held-out ones) and/or every frame of a camera-path JSON, tracked at `--times` (default:
-every frame of the trained window). The output folder holds `masks/<view>/t<time>.png`,
-`overlay/<view>.mp4` (rendered colour, mask in red, prompts marked) and `tracking.json` (the SAM backend
+every frame of the trained window). Each target view's mask at the clicked time is completed by multi-view
+agreement with the training views before it propagates (`--agreement`, `agreement.agreed_mask`). The output
+folder holds `masks/<view>/t<time>.png`, `overlay/<view>.mp4` (rendered colour, mask in red, prompts marked)
+and `tracking.json` (the SAM backend
 and its settings, the clicks, their 3D points, the prompt of every mask and, when the scene has synthetic
 ground truth `ground_truth/<camera>.npz`, IoU and accuracy per mask with mIoU / accuracy at the clicked time and
 t-mIoU / t-accuracy at the other times). Everything is checked before anything is written, and the

@@ -266,9 +266,11 @@ def track(
     times = [check_time(t) for t in times]
     clicked = embedding_at(click_time)
     first = segment(backend, clicked, pixels, labels)
-    if refine is not None:
-        first = refine(clicked, first)
     prompt = {"points": np.asarray(pixels).tolist(), "labels": np.asarray(labels).astype(int).tolist()}
+    if refine is not None:
+        refined = refine(clicked, first)
+        prompt["refined_pixels"] = int(np.count_nonzero(refined != first))  # tracking.json says what it changed
+        first = refined
     visited = {click_time: TrackedMask(click_time, first, prompt)}
     appearance = ObjectAppearance.of(clicked, first) if propagation == "embedding" else None
     for chain in propagation_chains(click_time, times, num_frames):
