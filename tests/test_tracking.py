@@ -337,8 +337,9 @@ def test_multi_view_agreement_gives_back_the_part_of_an_object_that_a_mask_left_
     scale = backend.grid_size / max(embedding.image_size)
     point = agreement.cell_points(target, embedding)[int(y * scale), int(x * scale)]  # the sphere's surface
     upper = truth & (np.arange(truth.shape[0])[:, None] < y)
-    views = [larger(name) for name in ("cam01", "cam02", "cam03", "cam04")]
-    agreed = agreement.agreed_mask(pipeline.model, backend, target, embedding, upper, [point], np.ones(1), views, 0.5)
+    views = {name: larger(name) for name in ("cam01", "cam02", "cam03", "cam04")}
+    seen = agreement.object_views(pipeline.model, backend, views, [point], np.ones(1), 0.5)
+    agreed = agreement.agreed_mask(target, embedding, upper, list(seen.values()))
     assert (agreed >= upper).all()  # cells are only added
     assert iou(upper, truth) < 0.6 and iou(agreed, truth) > 0.8, (iou(upper, truth), iou(agreed, truth))
     assert (agreed & ~truth).sum() < 0.2 * truth.sum()

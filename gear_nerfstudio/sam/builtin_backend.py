@@ -222,20 +222,21 @@ class BuiltinSamBackend(SamBackend):
         # colour, the features' where the cue takes in something of another colour at the object's depth beside it.
         features_alone = raw if depth is None else raw[..., :-1]
         sets = [(features_alone, False)] if depth is None else [(raw, True), (features_alone, False)]
-        regions, scores = [], []
+        regions, scores, middles = [], [], []
         for cells, cue in sets:
+            granularities = _DEPTH_GRANULARITIES if cue else _GRANULARITIES
             joins = logs if cue else None
             found = [
                 _region(_segment(cells, k), positives, inside, centre, closer_to_negative, disparity, joins)
-                for k in (_DEPTH_GRANULARITIES if cue else _GRANULARITIES)
+                for k in granularities
             ]
-            ranked = _scores(found, len(positives) > 0, inside if box is not None else None, disparity)
-            if depth is not None and not cue:  # the features alone's regions compete only as objects in front
-                ranked = [score if _in_front(r, disparity) >= _IN_FRONT else 0.0 for r, score in zip(found, ranked)]
+            # the features alone's regions compete beside the cue's only as objects in front of their surroundings
+            least_in_front = _IN_FRONT if depth is not None and not cue else 0.0
+            box_cells = inside if box is not None else None
             regions.extend(found)
-            scores.extend(ranked)
-        middle = len(_GRANULARITIES) // 2  # each set's middle granularity wins ties
-        order = sorted(range(len(regions)), key=lambda i: (-scores[i], i % len(_GRANULARITIES) != middle, i))
+            scores.extend(_scores(found, len(positives) > 0, box_cells, disparity, least_in_front))
+            middles.extend(j == len(granularities) // 2 for j in range(len(granularities)))
+        order = sorted(range(len(regions)), key=lambda i: (-scores[i], not middles[i], i))  # middles win ties
         masks = np.stack([self.upsample(regions[i], image_size, scale) for i in order])
         return masks, np.asarray(scores, dtype=np.float32)[order]
 
@@ -278,16 +279,21 @@ def _region(
 
 
 def _scores(
-    regions: List[np.ndarray], points: bool, box: Optional[np.ndarray], disparity: Optional[np.ndarray]
+    regions: List[np.ndarray],
+    points: bool,
+    box: Optional[np.ndarray],
+    disparity: Optional[np.ndarray],
+    least_in_front: float = 0.0,
 ) -> List[float]:
     """Scores of one segmentation's regions at its granularities. Points: their agreement with the other
     granularities' (like SAM's stability score). With a depth cue: the share of the region's outline that lies in
-    front of what surrounds it. A box (its cells): the region should fill it, as an object fills its bounding box
-    (Sec 4.5 prompts with a previous mask's box)."""
+    front of what surrounds it, 0 below `least_in_front`. A box (its cells): the region should fill it, as an object
+    fills its bounding box (Sec 4.5 prompts with a previous mask's box)."""
     scores = np.ones(len(regions))
     if points:
         scores *= [np.mean([_iou(r, o) for j, o in enumerate(regions) if j != i]) for i, r in enumerate(regions)]
-    scores *= [_in_front(r, disparity) for r in regions]
+    fronts = [_in_front(r, disparity) for r in regions]
+    scores *= [front if front >= least_in_front else 0.0 for front in fronts]
     if box is not None:
         scores *= [_box_fill(r, box) for r in regions]
     return scores.tolist()

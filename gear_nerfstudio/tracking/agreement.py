@@ -14,7 +14,8 @@ only gave 66.7.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Iterable, List
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Dict, Iterable, List
 
 import numpy as np
 import torch
@@ -39,6 +40,40 @@ OCCLUSION_MARGIN = 0.1
 share of it."""
 
 
+@dataclass
+class ObjectView:
+    """The object in one training view at the clicked time: the view, the depth rendered at its SAM grid's cells
+    (`Embedding.depth`) and the decoder's mask of the object there (the features are not kept)."""
+
+    camera: Cameras
+    depth: np.ndarray
+    mask: np.ndarray
+
+
+def object_views(
+    model: "Model",
+    backend: SamBackend,
+    views: Dict[str, Cameras],
+    points: Iterable[Tensor],
+    labels: np.ndarray,
+    time: float,
+) -> Dict[str, ObjectView]:
+    """The object in each of the named `views` at `time`: the clicks' 3D `points` with their `labels` prompt the
+    decoder on the view's rendered SAM features. A view into which a click does not project is left out. Made once
+    for all the target views of a click."""
+    points = [torch.as_tensor(point, dtype=torch.float32) for point in points]
+    found = {}
+    for name, camera in views.items():
+        camera = single_camera(camera)
+        try:
+            pixels = np.array([project_prompt(camera, point) for point in points])
+        except (TrackingError, DatasetError):
+            continue
+        embedding = render_embedding(model, camera, time, backend)
+        found[name] = ObjectView(camera, embedding.depth, segment(backend, embedding, pixels, labels))
+    return found
+
+
 def cell_points(camera: Cameras, embedding: Embedding) -> Tensor:
     """World points (rows, cols, 3) where the rays through the centres of an embedding's valid cells end at its
     rendered depth (nerfstudio's depth: the distance along the ray)."""
@@ -49,48 +84,30 @@ def cell_points(camera: Cameras, embedding: Embedding) -> Tensor:
     return (rays.origins.cpu() + rays.directions.cpu() * depth).reshape(rows, cols, 3)
 
 
-def agreed_mask(
-    model: "Model",
-    backend: SamBackend,
-    camera: Cameras,
-    embedding: Embedding,
-    mask: np.ndarray,
-    points: Iterable[Tensor],
-    labels: np.ndarray,
-    views: List[Cameras],
-    time: float,
-) -> np.ndarray:
-    """The mask (H, W) of the object in `camera` at `time`, from its rendered `embedding` (with depth), with the cells
-    added whose 3D points lie inside the object's mask in at least AGREEING_SHARE of the `views` that see them (at
-    least MIN_VIEWS). In each view, the clicks' 3D `points` with their `labels` prompt the decoder on the view's
-    rendered SAM features at `time`; a view into which a click does not project takes no part."""
-    points = [torch.as_tensor(point, dtype=torch.float32) for point in points]
+def agreed_mask(camera: Cameras, embedding: Embedding, mask: np.ndarray, views: List[ObjectView]) -> np.ndarray:
+    """The mask (H, W) of the object in `camera`, from its rendered `embedding` (with depth), with the cells added
+    whose 3D points lie inside the object's mask in at least AGREEING_SHARE of the `views` that see them (at least
+    MIN_VIEWS)."""
     world = cell_points(camera, embedding)
     rows, cols = world.shape[:2]
-    votes, inside = np.zeros((rows, cols)), np.zeros((rows, cols))
+    points = world.reshape(-1, 3)
+    votes, inside = np.zeros(rows * cols), np.zeros(rows * cols)
     for view in views:
-        view = single_camera(view)
-        try:
-            pixels = np.array([project_prompt(view, point) for point in points])
-        except (TrackingError, DatasetError):
-            continue
-        rendered = render_embedding(model, view, time, backend)
-        object_mask = segment(backend, rendered, pixels, labels)
-        uv, in_front = project(view, world.reshape(-1, 3))
+        uv, in_front = project(view.camera, points)
         x, y = uv[0, :, 0].numpy(), uv[0, :, 1].numpy()
-        height, width = rendered.image_size
+        height, width = view.mask.shape
         seen = in_front[0].numpy() & (x >= 0) & (x < width) & (y >= 0) & (y < height)
-        scale = cells_per_pixel(rendered.image_size, rendered.grid_size)
-        view_rows, view_cols = valid_grid(rendered.image_size, rendered.grid_size)
+        scale = cells_per_pixel(view.mask.shape, view.depth.shape[-1])
+        view_rows, view_cols = valid_grid(view.mask.shape, view.depth.shape[-1])
         cell_row = np.clip((y * scale).astype(np.int64), 0, view_rows - 1)
         cell_col = np.clip((x * scale).astype(np.int64), 0, view_cols - 1)
-        distance = np.linalg.norm(world.reshape(-1, 3).numpy() - view.camera_to_worlds[0, :, 3].cpu().numpy(), axis=1)
-        seen &= distance <= rendered.depth[cell_row, cell_col] * (1.0 + OCCLUSION_MARGIN)
+        distance = np.linalg.norm(points.numpy() - view.camera.camera_to_worlds[0, :, 3].cpu().numpy(), axis=1)
+        seen &= distance <= view.depth[cell_row, cell_col] * (1.0 + OCCLUSION_MARGIN)
         pixel_row, pixel_col = np.clip(y.astype(np.int64), 0, height - 1), np.clip(x.astype(np.int64), 0, width - 1)
-        votes += seen.reshape(rows, cols)
-        inside += (seen & object_mask[pixel_row, pixel_col]).reshape(rows, cols)
-    agreed = (votes >= MIN_VIEWS) & (inside >= AGREEING_SHARE * votes)
-    added = agreed & ~mask_cells(mask, embedding.grid_size)[:rows, :cols]
+        votes += seen
+        inside += seen & view.mask[pixel_row, pixel_col]
+    agreed = ((votes >= MIN_VIEWS) & (inside >= AGREEING_SHARE * votes)).reshape(rows, cols)
+    added = agreed & ~mask_cells(mask, embedding.grid_size)
     height, width = embedding.image_size
     scale = cells_per_pixel(embedding.image_size, embedding.grid_size)
     pixel_rows = np.minimum(((np.arange(height) + 0.5) * scale).astype(np.int64), rows - 1)

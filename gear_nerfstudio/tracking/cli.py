@@ -43,7 +43,7 @@ from gear_nerfstudio.data_parsers.multiview import cameras_by_name
 from gear_nerfstudio.sam.interface import cell_centres
 from gear_nerfstudio.tools.synthetic.ground_truth import GroundTruth
 from gear_nerfstudio.tools.video import write_video
-from gear_nerfstudio.tracking.agreement import agreed_mask
+from gear_nerfstudio.tracking.agreement import agreed_mask, object_views
 from gear_nerfstudio.tracking.metrics import score, summarise
 from gear_nerfstudio.tracking.click import (
     HIT_ACCUMULATION,
@@ -315,11 +315,13 @@ class Plan:
         backend = self.pipeline.sam_backend
         num_frames = int(getattr(model, "num_frames", 1))
         records, scores = [], []
-        for name, camera in self.views.items():
-            others = [view for other, view in self.training_views.items() if other != name]
+        seen = {}  # the object in every training view at the clicked time, for the multi-view agreement
+        if command.agreement:
             points = [hit.point for hit in self.hits]
-            refine = partial(agreed_mask, model, backend, camera, points=points, labels=self.labels, views=others,
-                             time=self.click_time) if command.agreement else None  # fmt: skip
+            seen = object_views(model, backend, self.training_views, points, self.labels, self.click_time)
+        for name, camera in self.views.items():
+            others = [view for other, view in seen.items() if other != name]
+            refine = partial(agreed_mask, camera, views=others) if command.agreement else None
             tracked = track_view(
                 model,
                 backend,
