@@ -61,6 +61,8 @@ class TrackingBenchmark:
     click_frame: int = 2
     objects: Tuple[int, ...] = (2, 3)
     """Object ids to click, one at a time (mixed scene: 1 static, 2 slow, 3 fast sphere)."""
+    min_views: Optional[int] = None
+    """`ns-gear-track --min-views`; its default when None."""
 
     def main(self) -> None:
         started = time.time()
@@ -93,7 +95,10 @@ class TrackingBenchmark:
             x, y = self.click_pixel(scene, object_id)
             for propagation in PROPAGATIONS:
                 result_dir = self.output / f"track_{object_id}_{propagation}"
-                summary = track_click(config, result_dir, self.click_camera, click_time, (x, y), "cam00", propagation)
+                summary = track_click(
+                    config, result_dir, self.click_camera, click_time, (x, y), "cam00", propagation,
+                    min_views=self.min_views,
+                )
                 metrics = summary["metrics"]
                 reference = self.reference(held_out, summary, object_id, click_time, propagation)
                 name = f"{OBJECT_NAMES.get(object_id, object_id)} ({object_id})"
@@ -191,14 +196,16 @@ def write_report(path: Path, table: List[str], per_time: List[str], timing: str)
 
 def track_click(
     config: Path, folder: Path, camera: str, click_time: float, pixel: Tuple[float, float], target: str,
-    propagation: str, video: bool = True, log: Optional[Path] = None,
+    propagation: str, video: bool = True, log: Optional[Path] = None, min_views: Optional[int] = None,
 ) -> Dict:
     """`ns-gear-track` of one positive click at `pixel` of `camera` into the `target` camera(s), written to
-    `folder` (with its overlay videos when `video`; its output to `log` when given); returns its tracking.json."""
+    `folder` (with its overlay videos when `video`; its output to `log` when given; with `--min-views` when
+    `min_views` is given); returns its tracking.json."""
     ns(
         "ns-gear-track", "--load-config", str(config), "--output-dir", str(folder), "--overwrite", "--click-camera",
         camera, "--click-time", str(click_time), "--positive", str(pixel[0]), str(pixel[1]), "--target-cameras",
-        target, "--propagation", propagation, "--video" if video else "--no-video", log=log,
+        target, "--propagation", propagation, "--video" if video else "--no-video",
+        *([] if min_views is None else ["--min-views", str(min_views)]), log=log,
     )  # fmt: skip
     return json.loads((folder / "tracking.json").read_text())
 

@@ -143,6 +143,8 @@ class RealTrackingBenchmark:
     """Where `ns-train` trains (`--machine.device-type`); tracking uses the GPU when there is one."""
     rays_per_batch: Optional[int] = None
     """Training rays per iteration; the preset's by default."""
+    min_views: Optional[int] = None
+    """`ns-gear-track --min-views`; its default when None."""
 
     def main(self) -> None:
         started = time.time()
@@ -180,7 +182,8 @@ class RealTrackingBenchmark:
                 log = self.output / f"track_person{index}_{propagation}.log"
                 try:
                     summary = track_click(
-                        config, folder, self.click_camera, click_time, (x, y), self.held_out, propagation, False, log
+                        config, folder, self.click_camera, click_time, (x, y), self.held_out, propagation, False, log,
+                        self.min_views,
                     )
                 except subprocess.CalledProcessError:
                     # A refused click is a failed track: no mask at any time.

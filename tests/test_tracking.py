@@ -47,7 +47,7 @@ from gear_nerfstudio.tracking.propagation import (
     track,
 )
 
-FAST_SPHERE = 3
+SLOW_SPHERE, FAST_SPHERE = 2, 3
 CLICK_CAMERA = "cam01"
 CLICK_FRAME = 1  # of 3: time 0.5
 FAINT = 0.01
@@ -192,6 +192,7 @@ def test_one_click_tracks_to_the_held_out_view_at_every_time(trained):
     assert sorted(p.name for p in out.parent.iterdir()) == ["ball"]  # no staging folder left
     summary = json.loads((out / "tracking.json").read_text())
     assert summary["targets"] == ["cam00"]  # default: the held-out camera
+    assert summary["min_views"] == 2  # rendered where 2 training cameras see (the run renders all space)
     assert summary["times"] == [0.0, 0.5, 1.0]
     assert summary["ground_truth_object"] == FAST_SPHERE
     assert summary["click"]["prompts"][0]["pixel"] == [x, y]
@@ -343,6 +344,25 @@ def test_multi_view_agreement_gives_back_the_part_of_an_object_that_a_mask_left_
     assert (agreed >= upper).all()  # cells are only added
     assert iou(upper, truth) < 0.6 and iou(agreed, truth) > 0.8, (iou(upper, truth), iou(agreed, truth))
     assert (agreed & ~truth).sum() < 0.2 * truth.sum()
+
+    # What every view's mask takes in apart from the object (here the slow sphere) would be agreed too; it stays out,
+    # as only agreed cells that join the mask are added.
+    slow = perfect.render(target, 0.5).object_ids == SLOW_SPHERE
+    assert slow.any() and not ndimage.binary_dilation(truth, iterations=3)[slow].any()  # apart in the target
+    for name, view in seen.items():
+        view.mask |= perfect.render(views[name], 0.5).object_ids == SLOW_SPHERE
+    assert np.array_equal(agreement.agreed_mask(target, embedding, upper, list(seen.values())), agreed)
+
+
+def test_tracking_renders_only_what_min_views_training_cameras_see_whatever_the_run_renders(trained):
+    """`ns-gear-track` loads the run with its renders keeping the density where --min-views (2 by default) training
+    cameras see, though the run itself, like every run by default, renders all space; 0 renders all space."""
+    for arguments, expected in (({}, 2), ({"min_views": 3}, 3), ({"min_views": 0}, None)):
+        _, pipeline, _, _ = cli.TrackCommand(load_config=trained[2], **arguments).load()
+        seen = pipeline.model.field.seen_space
+        assert pipeline.model.config.min_views == 0
+        assert seen is None if expected is None else seen.min_views == expected, (arguments, seen)
+        assert all(network.seen_space is seen for network in pipeline.model.proposal_networks)
 
 
 def test_time_outside_0_1_is_refused_before_loading(trained, tmp_path):

@@ -102,13 +102,13 @@ class GearNeRFModelConfig(ModelConfig):
     rig's cameras); 0 turns it off. The held-out camera, and any camera without a rig index (viewer, camera paths),
     is rendered with the mean code of the training cameras."""
     min_views: int = 0
-    """Renders in evaluation mode (ns-eval, ns-render, the viewer, ns-gear-track) take the density only where at least
-    this many training cameras (all of a smaller rig's) see a point (`fields.seen_space`); elsewhere the field was
-    fitted from one view or none, and at a novel view it shows as near blobs. 0 (the default) renders all space:
-    at 2, a view wider than the rig's (the viewer's) reaches past the seen space, and there the built-in SAM
-    stand-in gave a click on a sphere 8.5-10 % of the view instead of about 1.2 % (tracking_real.md in
-    benchmarks/results). Training, and the gear updates' renders of training views (`all_space`), always see all
-    space."""
+    """Renders in evaluation mode (ns-eval, ns-render, the viewer) take the density only where at least this many
+    training cameras (all of a smaller rig's) see a point (`fields.seen_space`); elsewhere the field was fitted from
+    one view or none, and at a novel view it shows as near blobs. 0 (the default) renders all space: at 2, a view
+    wider than the rig's (the viewer's) reaches past the seen space, and there the built-in SAM stand-in gave a
+    click on a sphere 8.5-10 % of the view instead of about 1.2 % (tracking_real.md in benchmarks/results).
+    ns-gear-track sets its own (`--min-views`, 2 by default). Training, and the gear updates' renders of training
+    views (`all_space`), always see all space."""
     initial_density: Optional[float] = None
     """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's
     initialisation, about exp(-1) = 0.37 (K-Planes)."""
@@ -509,12 +509,13 @@ class GearNeRFModel(Model):
         with evaluating(self), self.rendering("sam"):
             return self.get_outputs_for_camera_ray_bundle(rays)
 
-    def see_from(self, cameras: Cameras) -> None:
-        """Renders in evaluation mode keep the density where at least ``min_views`` of these training cameras see
-        a point (`fields.seen_space.SeenSpace`); nothing changes when ``min_views`` is 0."""
+    def see_from(self, cameras: Cameras, min_views: Optional[int] = None) -> None:
+        """Renders in evaluation mode keep the density where at least ``min_views`` (default: the config's) of these
+        training cameras see a point (`fields.seen_space.SeenSpace`); nothing changes when it is 0."""
+        min_views = self.config.min_views if min_views is None else min_views
         seen = None
-        if self.config.min_views > 0:
-            seen = SeenSpace(cameras, self.config.min_views, self.field.aabb, self.field.spatial_distortion)
+        if min_views > 0:
+            seen = SeenSpace(cameras, min_views, self.field.aabb, self.field.spatial_distortion)
         self._set_seen_space(seen)
 
     @contextlib.contextmanager
