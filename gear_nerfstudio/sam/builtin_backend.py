@@ -222,6 +222,7 @@ class BuiltinSamBackend(SamBackend):
         # colour, the features' where the cue takes in something of another colour at the object's depth beside it.
         features_alone = raw if depth is None else raw[..., :-1]
         sets = [(features_alone, False)] if depth is None else [(raw, True), (features_alone, False)]
+        box_cells = inside if box is not None else None
         regions, scores, middles = [], [], []
         for cells, cue in sets:
             granularities = _DEPTH_GRANULARITIES if cue else _GRANULARITIES
@@ -232,7 +233,6 @@ class BuiltinSamBackend(SamBackend):
             ]
             # the features alone's regions compete beside the cue's only as objects in front of their surroundings
             least_in_front = _IN_FRONT if depth is not None and not cue else 0.0
-            box_cells = inside if box is not None else None
             regions.extend(found)
             scores.extend(_scores(found, len(positives) > 0, box_cells, disparity, least_in_front))
             middles.extend(j == len(granularities) // 2 for j in range(len(granularities)))

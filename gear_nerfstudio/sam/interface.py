@@ -98,6 +98,16 @@ def valid_grid(image_size: Tuple[int, int], grid_size: int) -> Tuple[int, int]:
     return min(grid_size, int(np.ceil(image_size[0] * scale))), min(grid_size, int(np.ceil(image_size[1] * scale)))
 
 
+def pixel_cells(
+    x: np.ndarray, y: np.ndarray, image_size: Tuple[int, int], grid_size: int
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Row and column of the valid cell under each image point (x, y) in pixel coordinates, clipped to the valid
+    grid."""
+    rows, cols = valid_grid(image_size, grid_size)
+    scale = cells_per_pixel(image_size, grid_size)
+    return np.clip((y * scale).astype(np.int64), 0, rows - 1), np.clip((x * scale).astype(np.int64), 0, cols - 1)
+
+
 def cell_centres(image_size: Tuple[int, int], grid_size: int) -> Tensor:
     """Image pixel coordinates (x, y) of the centres of the valid cells, shape (rows, cols, 2)."""
     rows, cols = valid_grid(image_size, grid_size)

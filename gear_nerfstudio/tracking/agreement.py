@@ -25,7 +25,7 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gear_nerfstudio.data.errors import DatasetError
-from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, cells_per_pixel, valid_grid
+from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, pixel_cells
 from gear_nerfstudio.tracking.click import TrackingError, project_prompt, single_camera
 from gear_nerfstudio.tracking.projection import project
 from gear_nerfstudio.tracking.propagation import mask_cells, render_embedding, segment
@@ -95,17 +95,15 @@ def agreed_mask(camera: Cameras, embedding: Embedding, mask: np.ndarray, views: 
     world = cell_points(camera, embedding)
     rows, cols = world.shape[:2]
     points = world.reshape(-1, 3)
+    positions = points.numpy()
     votes, inside = np.zeros(rows * cols), np.zeros(rows * cols)
     for view in views:
         uv, in_front = project(view.camera, points)
         x, y = uv[0, :, 0].numpy(), uv[0, :, 1].numpy()
         height, width = view.mask.shape
         seen = in_front[0].numpy() & (x >= 0) & (x < width) & (y >= 0) & (y < height)
-        scale = cells_per_pixel(view.mask.shape, view.depth.shape[-1])
-        view_rows, view_cols = valid_grid(view.mask.shape, view.depth.shape[-1])
-        cell_row = np.clip((y * scale).astype(np.int64), 0, view_rows - 1)
-        cell_col = np.clip((x * scale).astype(np.int64), 0, view_cols - 1)
-        distance = np.linalg.norm(points.numpy() - view.camera.camera_to_worlds[0, :, 3].cpu().numpy(), axis=1)
+        cell_row, cell_col = pixel_cells(x, y, view.mask.shape, view.depth.shape[-1])
+        distance = np.linalg.norm(positions - view.camera.camera_to_worlds[0, :, 3].cpu().numpy(), axis=1)
         seen &= distance <= view.depth[cell_row, cell_col] * (1.0 + OCCLUSION_MARGIN)
         pixel_row, pixel_col = np.clip(y.astype(np.int64), 0, height - 1), np.clip(x.astype(np.int64), 0, width - 1)
         votes += seen
@@ -115,7 +113,5 @@ def agreed_mask(camera: Cameras, embedding: Embedding, mask: np.ndarray, views: 
     pieces, _ = ndimage.label(agreed | cells, structure=np.ones((3, 3)))
     added = agreed & ~cells & np.isin(pieces, pieces[cells])
     height, width = embedding.image_size
-    scale = cells_per_pixel(embedding.image_size, embedding.grid_size)
-    pixel_rows = np.minimum(((np.arange(height) + 0.5) * scale).astype(np.int64), rows - 1)
-    pixel_cols = np.minimum(((np.arange(width) + 0.5) * scale).astype(np.int64), cols - 1)
-    return mask | added[pixel_rows[:, None], pixel_cols[None, :]]
+    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    return mask | added[pixel_cells(xs, ys, embedding.image_size, embedding.grid_size)]
