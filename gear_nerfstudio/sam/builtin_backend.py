@@ -57,6 +57,7 @@ from gear_nerfstudio.sam.interface import (
     cells_per_pixel,
     log_depth,
     median_norm,
+    pixel_cells,
     valid_depth,
     valid_grid,
     with_depth_cue,
@@ -210,9 +211,9 @@ class BuiltinSamBackend(SamBackend):
         if box is not None:
             box = np.asarray(box, dtype=np.float64).reshape(4)
             inside = _box_cells(box, rows, cols, scale)
-            centre = _cells(box.reshape(2, 2).mean(axis=0, keepdims=True), rows, cols, scale)[0]
-        positives = _cells(points[labels == 1], rows, cols, scale)
-        negatives = _cells(points[labels == 0], rows, cols, scale)
+            centre = _cells(box.reshape(2, 2).mean(axis=0, keepdims=True), image_size, self.grid_size)[0]
+        positives = _cells(points[labels == 1], image_size, self.grid_size)
+        negatives = _cells(points[labels == 0], image_size, self.grid_size)
         closer_to_negative = np.zeros((rows, cols), dtype=bool)
         if len(negatives) and len(positives):
             closer_to_negative = _distance(raw, negatives) < _distance(raw, positives)
@@ -311,10 +312,9 @@ def _interpolation_matrix(pixels: int, cells: int, scale: float) -> np.ndarray:
     return weights
 
 
-def _cells(points: np.ndarray, rows: int, cols: int, scale: float) -> np.ndarray:
-    """Grid cells (row, col) containing pixel points (x, y), clipped to the valid grid; (N, 2) int."""
-    cells = np.floor(points[:, ::-1] * scale).astype(np.int64).reshape(-1, 2)
-    return np.clip(cells, 0, [rows - 1, cols - 1])
+def _cells(points: np.ndarray, image_size: Tuple[int, int], grid_size: int) -> np.ndarray:
+    """Grid cells (row, col) containing pixel points (x, y), clipped to the valid grid (``pixel_cells``); (N, 2) int."""
+    return np.stack(pixel_cells(points[:, 0], points[:, 1], image_size, grid_size), axis=-1).reshape(-1, 2)
 
 
 def _box_cells(box: np.ndarray, rows: int, cols: int, scale: float) -> np.ndarray:
