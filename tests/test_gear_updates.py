@@ -21,7 +21,7 @@ from gear_nerfstudio.fields.gear_field import GearField
 from gear_nerfstudio.gears.loss_maps import moving_patches, patch_prompts, patches_to_pixels
 from gear_nerfstudio.gears.schedule import GearUpdateState, NoGearUpdates, describe_plan, planned_updates
 from gear_nerfstudio.gears.updater import GearUpdater
-from gear_nerfstudio.gears.upshift import level_targets, shift_gears, upshift_loss
+from gear_nerfstudio.gears.upshift import level_targets, select_points, shift_gears, upshift_loss
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_small
 from gear_nerfstudio.sam.interface import cell_depth
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
@@ -51,6 +51,50 @@ def test_upshift_loss_is_a_weighted_hinge_to_the_target_interval():
     expected = (0.25**2 * 1 + 0.0 * 3) / 4 + 2.0 * (0.25**2 * 2 + 0.0) / 3
     loss = upshift_loss(g, targets, weights, upshift, stay_weight=2.0, num_gears=4, margin=0.25)
     assert torch.isclose(loss, torch.tensor(expected))
+
+
+def test_s_static_is_a_weighted_mean_of_its_own_in_the_loss_and_in_the_point_draws():
+    g = torch.tensor([1.0, 1.5, 1.0, 5.0, 2.0, 0.5])
+    targets = torch.tensor([2, 2, 1, 4, 1, 1])
+    weights = torch.tensor([1.0, 3.0, 2.0, 1.0, 4.0, 1.0])
+    upshift = torch.tensor([True, True, False, False, False, False])
+    static = torch.tensor([False, False, False, False, True, True])  # targets 1: (-inf, 0.75]
+    expected = (0.25**2 * 1) / 4 + 2.0 * (0.25**2 * 2) / 3 + 0.5 * (1.25**2 * 4) / 5
+    loss = upshift_loss(g, targets, weights, upshift, 2.0, 4, 0.25, static=static, static_weight=0.5)
+    assert torch.isclose(loss, torch.tensor(expected))
+    # Each set is drawn on its own: a large S_static does not crowd out S_stay.
+    weights = torch.ones(300)
+    upshift, static = torch.arange(300) < 10, torch.arange(300) >= 20
+    index, _ = select_points(weights, upshift, 50, torch.Generator().manual_seed(0), static)
+    assert (index < 10).sum() == 10 and ((index >= 10) & (index < 20)).sum() == 10 and (index >= 20).sum() == 50
+
+
+def test_s_static_keeps_the_static_points_that_share_plane_cells_with_the_upshift_at_gear_1():
+    """Eq 4 is a sum of products of planes: upshifting an object also lifts points elsewhere that share its plane
+    cells (here a box at the object's x and y, below it in z: the planes h'_xy, k'_xt and k'_yt are shared; 62 % of
+    it moved up with the object). Holding that box in S_static keeps it at gear 1 while the object still moves up."""
+    generator = torch.Generator().manual_seed(0)
+    points = torch.rand(3000, 3, generator=generator) * 2 - 1
+    times = torch.rand(3000, 1, generator=generator)
+    upshift = (points[:, 0] > 0.3) & (points[:, 1] > 0.3) & (points[:, 2] > 0.3)
+    slab = (points[:, 0] > 0.3) & (points[:, 1] > 0.3) & (points[:, 2] < -0.3)
+    stay = points[:, 0] < -0.3  # what the update's own views see outside the object
+    lifted = {}
+    for held in (False, True):
+        torch.manual_seed(0)
+        field = GearField(torch.tensor([[-1.0] * 3, [1.0] * 3]), num_frames=4, num_gears=4, resolutions=(16,),
+                          feature_dim=8, gear_resolution=16, sam_dim=8, sam_head_dim=None)
+        optimizer = torch.optim.Adam(field.gear_function.parameters(), lr=0.02)
+        used = upshift | stay | (slab if held else torch.zeros_like(slab))
+        static = slab[used] if held else None
+        levels = field.gear_levels(points[used], times[used])
+        targets = level_targets(levels, upshift[used], field.num_gears, static)
+        shift_gears(field, optimizer, points[used], times[used], torch.ones(int(used.sum())), upshift[used], targets,
+                    1.0, 0.25, max_steps=300, static=static)
+        levels = field.gear_levels(points, times)
+        assert bool((levels[upshift] == 2).all()) and bool((levels[stay] == 1).all())
+        lifted[held] = float((levels[slab] > 1).float().mean())
+    assert lifted[False] > 0.3 and lifted[True] == 0.0, lifted
 
 
 def test_shift_gears_upshifts_the_masked_region_only():
@@ -221,6 +265,47 @@ def test_with_the_depth_cue_the_upshift_masks_decoder_gets_the_loss_maps_depth(l
         tuple(mask.shape), updater.config.patch_size,
     )
     assert torch.equal(mask, (expected[0, 0] > 0.5) & moving)
+
+
+def test_s_static_rays_come_from_the_still_pixels_of_other_cameras_at_the_views_frame(loop_run):
+    """S_static (``static_views``): per update view, other training cameras at its frame (at most ``static_views``),
+    each with the view's S_stay count of rays through pixels outside every moving patch of its motion gate; none
+    without the motion gate, which tells them."""
+    _, trainer, updater = loop_run
+    dataset = trainer.pipeline.datamanager.train_dataset
+    camera_ids, frame_ids = dataset.metadata["camera_ids"], dataset.metadata["frame_ids"]
+    config = updater.config
+    loss_map = updater.loss_map(5)
+    for static_views, expected in ((8, 3), (2, 2)):  # the loop scene trains 4 cameras: 3 others at each frame
+        updater.config = dataclasses.replace(config, static_views=static_views)
+        try:
+            rays = updater.static_rays(loss_map, 40)
+        finally:
+            updater.config = config
+        found = []
+        for camera, pixels in rays:
+            matches = [
+                index for index in range(len(dataset))
+                if torch.allclose(dataset.cameras.camera_to_worlds[index], camera.camera_to_worlds[0].cpu())
+                and torch.allclose(dataset.cameras.times[index], camera.times[0].cpu())
+            ]  # fmt: skip
+            assert len(matches) == 1
+            index = matches[0]
+            assert int(frame_ids[index]) == int(frame_ids[5]) and int(camera_ids[index]) != int(camera_ids[5])
+            _, image = updater.view(dataset, index)
+            change = updater.change(index, image, config.motion_frames)
+            moving = patches_to_pixels(
+                moving_patches(change, config.patch_size, config.motion_threshold), tuple(change.shape), config.patch_size
+            )
+            rows, cols = pixels.long().unbind(-1)
+            assert len(pixels) == 40 and not bool(moving[rows, cols].any()) and bool(moving.any())
+            found.append(index)
+        assert len(set(found)) == expected
+    updater.config = dataclasses.replace(config, motion_threshold=0.0)
+    try:
+        assert updater.static_rays(loss_map, 40) == []
+    finally:
+        updater.config = config
 
 
 def test_the_updates_render_their_views_as_training_sees_the_scene(loop_run):

@@ -380,6 +380,7 @@ def test_onnx_backend_end_to_end_through_ns_train_and_ns_gear_track(onnx_files, 
     # The clicked-time mask is the ONNX decoder's on the model's rendered embedding, prompted at the click's point.
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
     assert isinstance(pipeline.sam_backend, OnnxSamBackend)  # the backend comes from config.yml
+    pipeline.model.see_from(pipeline.datamanager.train_dataparser_outputs.cameras, summary["min_views"])  # as it renders
     target = dataset_cameras(pipeline)[0]["cam00"]
     point = torch.tensor(summary["click"]["prompts"][0]["point"])
     pixel = np.array([project_prompt(target, point)])

@@ -31,6 +31,11 @@ move up start from the lower gear's columns, but a column of a space-time plane 
 the same coordinate along its axis, and the split samples change the quadrature, so the views render worse at
 first (about 3.5 dB on the synthetic loop scene) and recover with training. The held-out camera at the same
 times is measured alike and logged, never used to decide.
+
+Addition to the paper, S_static (``static_views``): the still pixels of other training cameras at each view's frame
+are held at gear 1 in a term of Eq 10 of their own. The gear function is a sum of products of planes (Eq 4), so the
+points an upshift lifts share plane cells with static surfaces that the update's views do not see; S_stay holds only
+those they see.
 """
 
 from __future__ import annotations
@@ -207,15 +212,15 @@ class GearUpdater:
         )
         shifts = [self.upshift_mask(m) for m in maps]
         masks = [mask for mask, _, _ in shifts]
-        points, times, weights, upshift, still = self.sample_points(maps, masks)
+        points, times, weights, upshift, still, static = self.sample_points(maps, masks)
         generator = torch.Generator(weights.device).manual_seed(int(self.rng.integers(2**31)))
-        index, weights = select_points(weights, upshift, config.max_points, generator)
-        points, times, upshift, still = points[index], times[index], upshift[index], still[index]
+        index, weights = select_points(weights, upshift, config.max_points, generator, static)
+        points, times, upshift, still, static = points[index], times[index], upshift[index], still[index], static[index]
         levels = self.target.gear_levels(points, times)
         targets = level_targets(levels, upshift, self.target.num_gears, still)
         steps = shift_gears(
             self.target, self.optimizer, points, times, weights, upshift, targets, config.stay_weight, config.margin,
-            config.max_steps,
+            config.max_steps, static, config.static_weight,
         )
         new_levels = self.target.gear_levels(points, times)
         self.state.num_updates += 1
@@ -371,13 +376,25 @@ class GearUpdater:
 
     def sample_points(
         self, maps: List[LossMap], masks: List[Tensor]
-    ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Points on rays inside (S_upshift) and outside (S_stay) the masks: positions, times, rendering weights,
-        whether in S_upshift, and whether on a pixel that stays still around the view's time (motion gate on).
-        Half of each view's S_stay rays come from the pixels at risk of moving up with the mask (``stay_focus``)."""
+    ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Points on rays inside (S_upshift) and outside (S_stay) the masks, and of S_static (``static_rays``):
+        positions, times, rendering weights, whether in S_upshift, whether on a pixel that stays still around the
+        view's time (motion gate on; every point of S_static), and whether in S_static. Half of each view's S_stay
+        rays come from the pixels at risk of moving up with the mask (``stay_focus``)."""
         config = self.config
         per_view = max(1, config.rays_per_set // len(maps))
-        points, times, weights, upshift, still = [], [], [], [], []
+        points, times, weights, upshift, still, static = [], [], [], [], [], []
+
+        def add(camera: Cameras, pixels: Tensor, inside: bool, unchanged: Tensor, held: bool) -> None:
+            position, time, weight = self.target.sample_weights(camera, pixels)
+            points.append(position)
+            times.append(time)
+            weights.append(weight)
+            samples = len(weight) // len(pixels)
+            upshift.append(torch.full((len(weight),), inside, dtype=torch.bool, device=weight.device))
+            still.append(unchanged.to(weight.device).repeat_interleave(samples))
+            static.append(torch.full((len(weight),), held, dtype=torch.bool, device=weight.device))
+
         for loss_map, mask in zip(maps, masks):
             moving = moving_patches(loss_map.change, config.patch_size, config.motion_threshold)
             focus = stay_focus(mask, patches_to_pixels(moving, tuple(mask.shape), config.patch_size), config.patch_size)
@@ -386,17 +403,35 @@ class GearUpdater:
                 (True, self.choose_pixels(mask, per_view)),
                 (False, torch.cat([chosen_focus, self.choose_pixels(~mask, per_view - len(chosen_focus))])),
             ):
-                if len(pixels) == 0:
-                    continue
-                position, time, weight = self.target.sample_weights(loss_map.camera, pixels)
-                points.append(position)
-                times.append(time)
-                weights.append(weight)
-                upshift.append(torch.full((len(weight),), inside, dtype=torch.bool, device=weight.device))
-                rows, cols = pixels.long().unbind(-1)
-                unchanged = (loss_map.local_change[rows, cols] < config.motion_threshold) & ~mask[rows, cols]
-                still.append(unchanged.repeat_interleave(len(weight) // len(pixels)) & (config.motion_threshold > 0))
-        return torch.cat(points), torch.cat(times), torch.cat(weights), torch.cat(upshift), torch.cat(still)
+                if len(pixels):
+                    rows, cols = pixels.long().unbind(-1)
+                    unchanged = (loss_map.local_change[rows, cols] < config.motion_threshold) & ~mask[rows, cols]
+                    add(loss_map.camera, pixels, inside, unchanged & (config.motion_threshold > 0), False)
+            for camera, pixels in self.static_rays(loss_map, per_view):
+                add(camera, pixels, False, torch.ones(len(pixels), dtype=torch.bool), True)
+        return tuple(torch.cat(values) for values in (points, times, weights, upshift, still, static))
+
+    def static_rays(self, loss_map: LossMap, count: int) -> List[Tuple[Cameras, Tensor]]:
+        """S_static's rays for one view (``GearUpdateConfig.static_views``): up to ``static_views`` other training
+        cameras at the view's frame, drawn at random, each with up to ``count`` of its still pixels (outside every
+        moving patch of its motion gate), at the loss-map size. No rays when S_static is off, or without the motion
+        gate to tell still pixels."""
+        config = self.config
+        if config.static_views <= 0 or config.motion_threshold <= 0:
+            return []
+        dataset = self.views.train_dataset
+        camera_ids, frame_ids = dataset.metadata["camera_ids"], dataset.metadata["frame_ids"]
+        view = loss_map.image_index
+        others = torch.nonzero((frame_ids == frame_ids[view]) & (camera_ids != camera_ids[view]))[:, 0].numpy()
+        rays = []
+        for index in self.rng.permutation(others)[: config.static_views].tolist():
+            camera, image = self.view(dataset, index)
+            change = self.change(index, image, config.motion_frames)
+            moving = moving_patches(change, config.patch_size, config.motion_threshold)
+            pixels = self.choose_pixels(~patches_to_pixels(moving, tuple(change.shape), config.patch_size), count)
+            if len(pixels):
+                rays.append((camera, pixels))
+        return rays
 
     def choose_pixels(self, selected: Tensor, count: int) -> Tensor:
         """Up to ``count`` distinct pixels (row, col) of a boolean map, drawn at random."""

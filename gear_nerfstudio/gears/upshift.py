@@ -28,23 +28,41 @@ def level_targets(levels: Tensor, upshift: Tensor, num_gears: int, still: Option
     return torch.where(upshift, (levels + 1).clamp(max=num_gears), stay)
 
 
+def point_sets(upshift: Tensor, static: Optional[Tensor] = None) -> Tuple[Tensor, ...]:
+    """Membership of the sets of Eq 10: S_upshift, S_stay and, when ``static`` is given, S_static (points of other
+    cameras' still pixels, held at gear 1 with a weighted mean of their own; ``GearUpdateConfig.static_views``)."""
+    if static is None:
+        return upshift, ~upshift
+    return upshift, ~upshift & ~static, static & ~upshift
+
+
 def upshift_loss(
-    g: Tensor, targets: Tensor, weights: Tensor, upshift: Tensor, stay_weight: float, num_gears: int, margin: float
+    g: Tensor,
+    targets: Tensor,
+    weights: Tensor,
+    upshift: Tensor,
+    stay_weight: float,
+    num_gears: int,
+    margin: float,
+    static: Optional[Tensor] = None,
+    static_weight: float = 1.0,
 ) -> Tensor:
     """Eq 10 as a weighted squared hinge: the distance of g from the interval of its target level q,
-    [q - 1 + margin, q - margin] (no lower bound for q = 1, no upper bound for q = N_gear)."""
+    [q - 1 + margin, q - margin] (no lower bound for q = 1, no upper bound for q = N_gear), averaged by weight over
+    S_upshift, plus ``stay_weight`` (lambda_stay) times that over S_stay, plus ``static_weight`` times that over
+    S_static when ``static`` marks its points."""
     low = torch.where(targets > 1, targets - 1 + margin, torch.full_like(g, -torch.inf))
     high = torch.where(targets < num_gears, targets - margin, torch.full_like(g, torch.inf))
     error = (torch.relu(low - g) + torch.relu(g - high)).square() * weights
-    up = error[upshift].sum() / weights[upshift].sum().clamp(min=1e-12)
-    stay = error[~upshift].sum() / weights[~upshift].sum().clamp(min=1e-12)
-    return up + stay_weight * stay
+    means = [error[members].sum() / weights[members].sum().clamp(min=1e-12) for members in point_sets(upshift, static)]
+    return sum(factor * mean for factor, mean in zip((1.0, stay_weight, static_weight), means))
 
 
 def select_points(
-    weights: Tensor, upshift: Tensor, max_points: int, generator: torch.Generator
+    weights: Tensor, upshift: Tensor, max_points: int, generator: torch.Generator, static: Optional[Tensor] = None
 ) -> Tuple[Tensor, Tensor]:
-    """The points of S_upshift and S_stay that take part in the Eq 11 steps, and their weights.
+    """The points of S_upshift, S_stay (and S_static, ``point_sets``) that take part in the Eq 11 steps, and their
+    weights.
 
     Only points whose weight is at least 1e-3 of the largest count: the others (most samples of a ray, in the
     empty space before and behind the surface it sees) add almost nothing to Eq 10. A set with more than
@@ -54,7 +72,7 @@ def select_points(
     """
     counted = weights >= 1e-3 * weights.max().clamp(min=1e-12)
     indices, selected = [], []
-    for in_set in (upshift, ~upshift):
+    for in_set in point_sets(upshift, static):
         members = torch.nonzero(counted & in_set)[:, 0]
         if len(members) > max_points:
             draws = torch.multinomial(weights[members], max_points, replacement=True, generator=generator)
@@ -77,6 +95,8 @@ def shift_gears(
     stay_weight: float,
     margin: float,
     max_steps: int,
+    static: Optional[Tensor] = None,
+    static_weight: float = 1.0,
 ) -> int:
     """Eq 11 steps of `optimizer` (on the gear function only) until the points sit at their target levels, at
     most max_steps; returns the number of steps taken.
@@ -100,7 +120,7 @@ def shift_gears(
         g = field.gear_values(points, times)
         if bool(distributed.intersection((gear_level(g.detach(), field.num_gears) == targets).all())):
             break
-        loss = upshift_loss(g, targets, weights, upshift, stay_weight, field.num_gears, margin)
+        loss = upshift_loss(g, targets, weights, upshift, stay_weight, field.num_gears, margin, static, static_weight)
         for parameter, gradient in zip(parameters, torch.autograd.grad(loss, parameters, allow_unused=True)):
             parameter.grad = gradient
         distributed.average_gradients(parameters)
