@@ -27,9 +27,11 @@ case "${1:-}" in
       --python-version 3.12 --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
       --platform manylinux1_x86_64 --only-binary=:all: "${PACKAGES[@]}"
     # Not needed to train, track or evaluate, and over the size a call carries with the working tree: gsplat's
-    # CUDA sources (splatfacto only), tensorly's sample data, the viewer client's sources.
-    rm -rf .device_site/site/gsplat/cuda/csrc .device_site/site/tensorly/datasets/data \
-      .device_site/site/viser/client/node_modules .device_site/site/viser/client/src
+    # CUDA sources (splatfacto only), tensorly's sample data, the viewer's web client and icons (no viewer runs
+    # there), rawpy (ns-process-data's camera raw files only; nerfstudio imports it when it loads, so `setup` puts an
+    # empty module in its place).
+    rm -rf .device_site/site/gsplat/cuda/csrc .device_site/site/tensorly/datasets/data .device_site/site/viser/client \
+      .device_site/site/viser/_icons .device_site/site/rawpy .device_site/site/rawpy.libs
     tar cf - -C .device_site site | xz -9 -T2 >.device_site/site.tar.xz && rm -rf .device_site/site
     cp -r ../shared/data/real/panoptic_basketball_video .device_site/real/
     # The masks of the cameras that tracking_real.py clicks in and tracks into (cam13, cam20).
@@ -40,6 +42,7 @@ case "${1:-}" in
   setup)
     python3 -c "import tarfile; tarfile.open('.device_site/site.tar.xz').extractall('/tmp', filter='data')"
     python3 -m pip install -q --upgrade --no-deps --no-build-isolation --no-index --no-compile --target /tmp/site .
+    mkdir -p /tmp/site/rawpy && touch /tmp/site/rawpy/__init__.py
     # pip --target writes no console scripts: the ns-* commands that the benchmarks run, as modules (-P: not the
     # checkout's own gear_nerfstudio folder, which lacks the installed package's method_configs and data_parsers).
     mkdir -p /tmp/site/bin

@@ -32,6 +32,7 @@ Prints a markdown table and writes it to `<output>/tracking_real.md`.
 from __future__ import annotations
 
 import dataclasses
+import shlex
 import subprocess
 import time
 from pathlib import Path
@@ -145,6 +146,9 @@ class RealTrackingBenchmark:
     """Training rays per iteration; the preset's by default."""
     min_views: Optional[int] = None
     """`ns-gear-track --min-views`; its default when None."""
+    train_options: str = ""
+    """More `ns-train` options for the method, as one string (`--train-options="--pipeline.model.gear-feature-dim
+    8"`), e.g. to train a baseline that differs in one setting."""
 
     def main(self) -> None:
         started = time.time()
@@ -261,6 +265,7 @@ class RealTrackingBenchmark:
             "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
             "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
             "--machine.device-type", self.device, "--machine.seed", str(self.seed), "--vis", "tensorboard", *rays,
+            *shlex.split(self.train_options),
             "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
             *capture.dataparser(self.held_out, self.downscale, self.frame_count),
             "--cache-dir", str(self.output / "frames"), log=runs / "train.log",
