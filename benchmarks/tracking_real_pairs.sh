@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# tracking_real.py at several seeds for two variants side by side, each scored for tracking (its tracking_real.md)
-# and for where its gears went at the held-out camera (gear_masks.py): the defaults ("default") against a baseline
-# ("baseline") trained with the ns-train options in $BASELINE_TRAIN and tracked with $BASELINE_TRACK.
+# tracking_real.py at several seeds for two variants, the two of a seed side by side (then the next seed), each
+# scored for tracking (its tracking_real.md) and for where its gears went at the held-out camera (gear_masks.py): the
+# defaults ("default") against a baseline ("baseline") trained with the ns-train options in $BASELINE_TRAIN and
+# tracked with $BASELINE_TRACK.
 #
 #   BASELINE_TRAIN="--pipeline.gear-updates.static-views 0 --pipeline.model.gear-feature-dim 8" \
 #   BASELINE_TRACK="--min-views 2" bash benchmarks/tracking_real_pairs.sh OUTPUT "SEEDS" [tracking_real.py options]
@@ -28,5 +29,5 @@ one() {
 for seed in $seeds; do
   one default "$seed" &
   one baseline "$seed" --train-options="${BASELINE_TRAIN:-}" ${BASELINE_TRACK:-} &
+  wait
 done
-wait
