@@ -127,7 +127,7 @@ class GearField(Field):
         num_gears: int = 4,
         feature_dim: int = 32,
         resolutions: Sequence[int] = (64, 128, 256, 512),
-        gear_feature_dim: int = 32,
+        gear_feature_dim: int = 8,
         gear_resolution: int = 64,
         gear_time_resolution: Optional[int] = None,
         time_resolutions: Optional[Sequence[int]] = None,
