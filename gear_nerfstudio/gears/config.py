@@ -52,7 +52,7 @@ class GearUpdateConfig:
     view's frame (fewer when the rig has fewer), each giving as many rays as the view's S_stay through its still
     pixels (outside every moving patch of its motion gate), pulled to gear 1 in a weighted mean of their own. Eq 4
     is a sum of products of planes, so an upshift lifts every point that shares a plane cell with the upshifted
-    ones; S_stay holds only what the update's views see. Measured with 8 and 32 gear channels
+    ones; S_stay holds only what the update's views see. Measured with 32 gear channels
     (`--pipeline.model.gear-feature-dim 32`) on the real captures (benchmarks/results/tracking_real.md, issue 26):
     on `panoptic` (5 seeds) 94.2 % of the static scene at gear 1 at the held-out camera against 85.9 % without, but
     on the 31-camera capture (3 seeds) 79.2 % against 86.4 %, with the walls and floor raised at two seeds; so it is

@@ -81,9 +81,9 @@ class GearNeRFModelConfig(ModelConfig):
     """Spatial resolutions of the planes (features concatenated across resolutions before B_j)."""
     gear_feature_dim: int = 8
     """M', channels of the gear function's planes h', k' (Eq 4; the paper does not state it). Points that share plane
-    cells move up together; 32 channels let S_static (`GearUpdateConfig.static_views`) hold the static scene
-    without holding the people back (benchmarks/results/tracking_real.md, issue 26), at about 20 % more render time
-    per sample."""
+    cells move up together: with 32, S_static (`GearUpdateConfig.static_views`) held `panoptic`'s static scene at
+    gear 1 without holding its people back, which it did not with 8 (benchmarks/results/tracking_real.md, issue
+    26), at about 20 % more render time per sample."""
     gear_resolution: int = 64
     """Spatial resolution of h', k'."""
     gear_time_resolution: Optional[int] = None
