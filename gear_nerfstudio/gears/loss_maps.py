@@ -61,6 +61,11 @@ def patches_to_pixels(patches: Tensor, shape: Tuple[int, int], patch_size: int) 
     return pixels[: shape[0], : shape[1]]
 
 
+def moving_pixels(change: Tensor, patch_size: int, threshold: float) -> Tensor:
+    """Pixels (h, w) of the patches that ``moving_patches`` marks on a change map."""
+    return patches_to_pixels(moving_patches(change, patch_size, threshold), tuple(change.shape), patch_size)
+
+
 def stay_focus(mask: Tensor, moving_pixels: Tensor, patch_size: int) -> Tensor:
     """Pixels of S_stay at risk of moving up with the upshift mask (h, w): outside it, but within one patch of it,
     or in a moving patch (where the object is at other times). The gear function is smooth in space and time,

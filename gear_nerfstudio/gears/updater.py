@@ -59,6 +59,7 @@ from gear_nerfstudio.gears.loss_maps import (
     LossMap,
     frame_change,
     moving_patches,
+    moving_pixels,
     patch_prompts,
     patches_to_pixels,
     resized_image,
@@ -357,10 +358,10 @@ class GearUpdater:
         config = self.config
         shape = tuple(loss_map.loss.shape)
         moving = moving_patches(loss_map.change, config.patch_size, config.motion_threshold)
-        moving_pixels = patches_to_pixels(moving, shape, config.patch_size)
+        in_motion = patches_to_pixels(moving, shape, config.patch_size)
         if config.mask_source == "loss_threshold":
             values = loss_map.rgb_loss
-            return (values > values.mean() + config.loss_threshold_std * values.std()) & moving_pixels, None, None
+            return (values > values.mean() + config.loss_threshold_std * values.std()) & in_motion, None, None
         if not bool(moving.any()):
             return torch.zeros(shape, dtype=torch.bool, device=loss_map.loss.device), None, None
         points, labels = patch_prompts(loss_map.loss, config.patch_size, config.top_k, moving)
@@ -372,7 +373,7 @@ class GearUpdater:
         masks, _ = self.backend.decode(embedding, points=points.cpu().numpy() * scale, labels=labels.numpy().astype(np.int64))
         mask = torch.from_numpy(masks[0]).float()[None, None]
         mask = F.interpolate(mask, size=shape, mode="area")[0, 0].to(self.target.device) > 0.5
-        return mask & moving_pixels, points, labels
+        return mask & in_motion, points, labels
 
     def sample_points(
         self, maps: List[LossMap], masks: List[Tensor]
@@ -396,8 +397,8 @@ class GearUpdater:
             static.append(torch.full((len(weight),), held, dtype=torch.bool, device=weight.device))
 
         for loss_map, mask in zip(maps, masks):
-            moving = moving_patches(loss_map.change, config.patch_size, config.motion_threshold)
-            focus = stay_focus(mask, patches_to_pixels(moving, tuple(mask.shape), config.patch_size), config.patch_size)
+            moving = moving_pixels(loss_map.change, config.patch_size, config.motion_threshold)
+            focus = stay_focus(mask, moving, config.patch_size)
             chosen_focus = self.choose_pixels(focus, per_view // 2)
             for inside, pixels in (
                 (True, self.choose_pixels(mask, per_view)),
@@ -427,8 +428,7 @@ class GearUpdater:
         for index in self.rng.permutation(others)[: config.static_views].tolist():
             camera, image = self.view(dataset, index)
             change = self.change(index, image, config.motion_frames)
-            moving = moving_patches(change, config.patch_size, config.motion_threshold)
-            pixels = self.choose_pixels(~patches_to_pixels(moving, tuple(change.shape), config.patch_size), count)
+            pixels = self.choose_pixels(~moving_pixels(change, config.patch_size, config.motion_threshold), count)
             if len(pixels):
                 rays.append((camera, pixels))
         return rays
