@@ -20,7 +20,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 import tyro
+from nerfstudio.pipelines.base_pipeline import Pipeline
 from nerfstudio.utils.eval_utils import eval_setup
+from scipy import ndimage
 
 from speed_accuracy import gear_mask_counts, read_mask
 
@@ -32,6 +34,14 @@ def gear_shares(
     """People's pixels at gear >= 2 and other pixels at gear 1, over every frame of the given training cameras (of
     the held-out cameras with `held_out`)."""
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    return pipeline_gear_shares(pipeline, masks, cameras, scale, held_out)
+
+
+@torch.no_grad()
+def pipeline_gear_shares(
+    pipeline: Pipeline, masks: Path, cameras: Sequence[str], scale: float = 0.25, held_out: bool = False
+) -> Tuple[float, float]:
+    """``gear_shares`` of a loaded pipeline."""
     datamanager = pipeline.datamanager
     model, dataset = pipeline.model, datamanager.eval_dataset if held_out else datamanager.train_dataset
     names, numbers = dataset.metadata["camera_names"], dataset.metadata["frame_numbers"]
@@ -47,6 +57,38 @@ def gear_shares(
             people = F.interpolate(mask, size=levels.shape, mode="area")[0, 0].numpy() > 0.5
             counts += gear_mask_counts(levels, people)
     return counts[0] / max(counts[1], 1), counts[2] / max(counts[3], 1)
+
+
+GEAR_COLOURS = np.array([[0, 0, 0], [150, 150, 150], [40, 90, 230], [250, 150, 30], [220, 30, 30]], np.uint8)
+"""Gear map colours: levels 1-4 grey, blue, orange, red."""
+
+
+@torch.no_grad()
+def gear_map_picture(
+    pipeline: Pipeline, masks: Path, camera: str, frames: Sequence[int], scale: float = 0.25
+) -> np.ndarray:
+    """The held-out camera at some frames (numbered within the loaded window): its render above its gear map
+    (``GEAR_COLOURS``), the people's true outlines green, as one RGB image."""
+    model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
+    names, numbers = dataset.metadata["camera_names"], dataset.metadata["frame_numbers"]
+    camera_ids, frame_ids = dataset.metadata["camera_ids"], dataset.metadata["frame_ids"]
+    renders, gears = [], []
+    for frame in frames:
+        index = int(torch.nonzero((camera_ids == names.index(camera)) & (frame_ids == frame))[0, 0])
+        view = dataset.cameras[index : index + 1].to(model.device)
+        view.rescale_output_resolution(scale)
+        outputs = model.render_view(view)
+        levels = model.visible_gear_levels(view, outputs).cpu().numpy()
+        mask = torch.from_numpy(read_mask(masks, camera, int(numbers[frame])))[None, None].float()
+        people = F.interpolate(mask, size=levels.shape, mode="area")[0, 0].numpy() > 0.5
+        outline = people & ~ndimage.binary_erosion(people)
+        render = (outputs["rgb"].cpu().numpy().clip(0, 1) * 255).astype(np.uint8)
+        gear = GEAR_COLOURS[levels.clip(0, 4)]
+        for image in (render, gear):
+            image[outline] = (0, 255, 0)
+        renders.append(render)
+        gears.append(gear)
+    return np.concatenate([np.concatenate(renders, 1), np.concatenate(gears, 1)], 0)
 
 
 def main(
