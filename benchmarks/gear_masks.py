@@ -27,6 +27,12 @@ from scipy import ndimage
 from speed_accuracy import gear_mask_counts, read_mask
 
 
+def people_mask(masks: Path, camera: str, number: int, shape: Tuple[int, int]) -> np.ndarray:
+    """A capture's people mask (``read_mask``) area-resampled to shape (h, w), as bools."""
+    mask = torch.from_numpy(read_mask(masks, camera, number))[None, None].float()
+    return F.interpolate(mask, size=tuple(shape), mode="area")[0, 0].numpy() > 0.5
+
+
 @torch.no_grad()
 def gear_shares(
     config: Path, masks: Path, cameras: Sequence[str], scale: float = 0.25, held_out: bool = False
@@ -53,8 +59,7 @@ def pipeline_gear_shares(
             camera = dataset.cameras[index : index + 1].to(model.device)
             camera.rescale_output_resolution(scale)
             levels = model.visible_gear_levels(camera).cpu().numpy()
-            mask = torch.from_numpy(read_mask(masks, name, int(numbers[int(frame_ids[index])])))[None, None].float()
-            people = F.interpolate(mask, size=levels.shape, mode="area")[0, 0].numpy() > 0.5
+            people = people_mask(masks, name, int(numbers[int(frame_ids[index])]), levels.shape)
             counts += gear_mask_counts(levels, people)
     return counts[0] / max(counts[1], 1), counts[2] / max(counts[3], 1)
 
@@ -79,8 +84,7 @@ def gear_map_picture(
         view.rescale_output_resolution(scale)
         outputs = model.render_view(view)
         levels = model.visible_gear_levels(view, outputs).cpu().numpy()
-        mask = torch.from_numpy(read_mask(masks, camera, int(numbers[frame])))[None, None].float()
-        people = F.interpolate(mask, size=levels.shape, mode="area")[0, 0].numpy() > 0.5
+        people = people_mask(masks, camera, int(numbers[frame]), levels.shape)
         outline = people & ~ndimage.binary_erosion(people)
         render = (outputs["rgb"].cpu().numpy().clip(0, 1) * 255).astype(np.uint8)
         gear = GEAR_COLOURS[levels.clip(0, 4)]

@@ -22,17 +22,15 @@ from pathlib import Path
 from typing import Optional, Tuple
 
 import torch
-import torch.nn.functional as F
 import tyro
 from nerfstudio.utils.eval_utils import eval_setup
 from PIL import Image
 
-from gear_masks import gear_map_picture, pipeline_gear_shares
+from gear_masks import gear_map_picture, people_mask, pipeline_gear_shares
 from gear_nerfstudio.fields.gear_function import GearFunction
 from gear_nerfstudio.gears.loss_maps import LossMap
 from gear_nerfstudio.gears.schedule import GearUpdateState, planned_updates
 from gear_nerfstudio.gears.updater import GearUpdater
-from speed_accuracy import read_mask
 
 
 class MeasuredUpdater(GearUpdater):
@@ -54,8 +52,7 @@ class MeasuredUpdater(GearUpdater):
         if not path.exists():
             print(f"  view {camera} frame {number}: no true mask, the upshift mask is kept")
             return mask, points, labels
-        truth = torch.from_numpy(read_mask(self.masks, camera, number))[None, None].float()
-        truth = (F.interpolate(truth, size=tuple(mask.shape), mode="area")[0, 0] > 0.5).to(mask.device)
+        truth = torch.from_numpy(people_mask(self.masks, camera, number, tuple(mask.shape))).to(mask.device)
         inside = float((mask & truth).sum())
         print(
             f"  view {camera} frame {number}: people {float(truth.float().mean()):.3f} of the view, upshift mask "

@@ -66,12 +66,12 @@ def moving_pixels(change: Tensor, patch_size: int, threshold: float) -> Tensor:
     return patches_to_pixels(moving_patches(change, patch_size, threshold), tuple(change.shape), patch_size)
 
 
-def stay_focus(mask: Tensor, moving_pixels: Tensor, patch_size: int) -> Tensor:
+def stay_focus(mask: Tensor, in_motion: Tensor, patch_size: int) -> Tensor:
     """Pixels of S_stay at risk of moving up with the upshift mask (h, w): outside it, but within one patch of it,
     or in a moving patch (where the object is at other times). The gear function is smooth in space and time,
     so these are where an upshift spills over."""
     near = F.max_pool2d(mask[None, None].float(), 2 * patch_size + 1, stride=1, padding=patch_size)[0, 0] > 0
-    return (near | moving_pixels) & ~mask
+    return (near | in_motion) & ~mask
 
 
 def resized_image(dataset: InputDataset, image_index: int, size: Tuple[int, int]) -> Tensor:
