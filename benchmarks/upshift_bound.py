@@ -113,7 +113,7 @@ def main(
     people, rest = pipeline_gear_shares(pipeline, masks, (camera,), held_out=True)
     if picture is not None:
         Image.fromarray(gear_map_picture(pipeline, masks, camera, picture_frames)).save(picture)
-    source = "true masks" if true_masks else f"{settings.mask_source} masks"
+    source = "true masks" if true_masks else f"{updater.config.mask_source} masks"
     print(
         f"{config.parent.name} seed {seed}, {source}, {field.gear_function.space_planes.planes[0].shape[1]} channels, "
         f"static_views {settings.static_views}: people's pixels at gear >= 2: {people:.3f}; other pixels at gear 1: "

@@ -114,6 +114,17 @@ def test_gear_function_starts_at_exactly_one_with_gradients_to_both_planes():
         assert plane.grad is not None and plane.grad.abs().sum() > 0
 
 
+def test_the_radiance_field_starts_the_same_whatever_the_gear_functions_channels():
+    """The gear function draws its initial values from a fork of the random stream: at one seed, fields with 8 and 32
+    gear channels share every other parameter's start."""
+    fields = [small_field(gear_feature_dim=channels) for channels in (8, 32)]
+    starts = [field.state_dict() for field in fields]
+    others = [name for name in starts[0] if not name.startswith("gear_function.")]
+    assert len(others) > 10 and all(torch.equal(starts[0][name], starts[1][name]) for name in others)
+    planes = [field.gear_function.space_planes.planes[0] for field in fields]
+    assert (planes[0].shape[1], planes[1].shape[1]) == (8, 32)
+
+
 def test_every_gear_starts_as_the_static_field():
     field = small_field()
     positions, times = random_inputs()

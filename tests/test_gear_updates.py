@@ -244,7 +244,7 @@ def test_with_the_depth_cue_the_upshift_masks_decoder_gets_the_loss_maps_depth(l
     _, trainer, updater = loop_run
     pipeline = trainer.pipeline
     with_cue = GearUpdater(
-        dataclasses.replace(updater.config, depth_cue=True), pipeline.model, pipeline.datamanager,
+        dataclasses.replace(updater.config, mask_source="sam", depth_cue=True), pipeline.model, pipeline.datamanager,
         pipeline.sam_backend, updater.optimizer, GearUpdateState(pipeline.model.gear_assignment(), 4),
         rays_per_batch=1024, first_step=0, last_step=LOOP_ITERATIONS - 1,
     )  # fmt: skip
@@ -266,6 +266,31 @@ def test_with_the_depth_cue_the_upshift_masks_decoder_gets_the_loss_maps_depth(l
         tuple(mask.shape), updater.config.patch_size,
     )
     assert torch.equal(mask, (expected[0, 0] > 0.5) & moving)
+
+
+def test_with_the_built_in_stand_in_the_upshift_masks_are_the_loss_maps_high_rgb_loss_where_it_moves(loop_run):
+    """mask_source 'auto' (the default) with the built-in stand-in is 'loss_threshold': the upshift mask is the RGB
+    loss above its mean + k std, cut to the moving patches, without prompts; with k = 0 it grows."""
+    _, trainer, updater = loop_run
+    assert trainer.pipeline.config.gear_updates.mask_source == "auto" and updater.config.mask_source == "loss_threshold"
+    config = updater.config
+    sizes = []
+    for k in (config.loss_threshold_std, 0.0):
+        updater.config = dataclasses.replace(config, loss_threshold_std=k)
+        try:
+            loss_map = updater.loss_map(5)
+            mask, points, labels = updater.upshift_mask(loss_map)
+        finally:
+            updater.config = config
+        moving = patches_to_pixels(
+            moving_patches(loss_map.change, config.patch_size, config.motion_threshold), tuple(mask.shape),
+            config.patch_size,
+        )
+        values = loss_map.rgb_loss
+        assert points is None and labels is None and bool(moving.any())
+        assert torch.equal(mask, (values > values.mean() + k * values.std()) & moving)
+        sizes.append(int(mask.sum()))
+    assert 0 < sizes[0] < sizes[1], sizes
 
 
 def test_s_static_rays_come_from_the_still_pixels_of_other_cameras_at_the_views_frame(loop_run):

@@ -30,7 +30,7 @@ def test_ns_train_runs_gear_updates_on_real_video(tmp_path):
         "--held-out-camera", "06", "--cache-dir", str(tmp_path / "frames"), cwd=tmp_path,
     )  # fmt: skip
     log = " ".join(re.sub(r"\S+\.py:\d+", " ", result.stdout).split())  # rich's log lines, unwrapped
-    assert "planned at steps 6, 12, 18" in log
+    assert "planned at steps 6, 12, 18" in log and "Upshift masks from the RGB loss threshold." in log  # the stand-in's
     areas = [float(a) for a in re.findall(r"Gear update \d at step \d+: loss-map variance \S+ upshift area ([\d.]+)", log)]
     reviews = re.findall(r"Gear update (\d) reviewed at step (\d+): its views [\d.]+ -> [\d.]+ dB, held-out view "
                          r"[\d.]+ -> [\d.]+ dB(: kept|; more than 0.1 dB worse: undone)", log)  # fmt: skip

@@ -3,6 +3,7 @@ exported with the package's own model classes and ONNX wrapper (no weights can b
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -14,6 +15,8 @@ import pytest
 import torch
 from PIL import Image
 
+from gear_nerfstudio.gears.config import GearUpdateConfig
+from gear_nerfstudio.gears.updater import with_mask_source
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.config import BuiltinSamConfig, OnnxSamConfig
 from gear_nerfstudio.sam.feature_cache import read_header
@@ -249,6 +252,17 @@ def test_config_builds_backends(onnx_files):
     with pytest.raises(SamModelError, match="encoder"):
         OnnxSamConfig(decoder=onnx_files["decoder"]).setup()
     assert BuiltinSamConfig().setup().name == "builtin"
+
+
+def test_the_gear_updates_take_sams_masks_with_a_sam_backend_and_the_loss_threshold_with_the_stand_in(backend):
+    """mask_source 'auto' (the default): the paper's SAM masks with an ONNX SAM backend, the loss threshold with the
+    built-in stand-in; a mask source that is set stays."""
+    config = GearUpdateConfig()
+    assert config.mask_source == "auto"
+    assert with_mask_source(config, backend).mask_source == "sam"
+    assert with_mask_source(config, BuiltinSamBackend()).mask_source == "loss_threshold"
+    chosen = dataclasses.replace(config, mask_source="sam")
+    assert with_mask_source(chosen, BuiltinSamBackend()) is chosen
 
 
 @pytest.mark.parametrize(

@@ -192,7 +192,7 @@ def test_one_click_tracks_to_the_held_out_view_at_every_time(trained):
     assert sorted(p.name for p in out.parent.iterdir()) == ["ball"]  # no staging folder left
     summary = json.loads((out / "tracking.json").read_text())
     assert summary["targets"] == ["cam00"]  # default: the held-out camera
-    assert summary["min_views"] == 2  # rendered where 2 training cameras see (the run renders all space)
+    assert summary["min_views"] == 4  # rendered where 4 training cameras see (the run renders all space)
     assert summary["times"] == [0.0, 0.5, 1.0]
     assert summary["ground_truth_object"] == FAST_SPHERE
     assert summary["click"]["prompts"][0]["pixel"] == [x, y]
@@ -357,9 +357,9 @@ def test_multi_view_agreement_gives_back_the_part_of_an_object_that_a_mask_left_
 
 
 def test_tracking_renders_only_what_min_views_training_cameras_see_whatever_the_run_renders(trained):
-    """`ns-gear-track` loads the run with its renders keeping the density where --min-views (2 by default) training
+    """`ns-gear-track` loads the run with its renders keeping the density where --min-views (4 by default) training
     cameras see, though the run itself, like every run by default, renders all space; 0 renders all space."""
-    for arguments, expected in (({}, 2), ({"min_views": 3}, 3), ({"min_views": 0}, None)):
+    for arguments, expected in (({}, 4), ({"min_views": 2}, 2), ({"min_views": 0}, None)):
         _, pipeline, _, _ = cli.TrackCommand(load_config=trained[2], **arguments).load()
         seen = pipeline.model.field.seen_space
         assert pipeline.model.config.min_views == 0

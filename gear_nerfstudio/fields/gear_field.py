@@ -127,7 +127,7 @@ class GearField(Field):
         num_gears: int = 4,
         feature_dim: int = 32,
         resolutions: Sequence[int] = (64, 128, 256, 512),
-        gear_feature_dim: int = 8,
+        gear_feature_dim: int = 32,
         gear_resolution: int = 64,
         gear_time_resolution: Optional[int] = None,
         time_resolutions: Optional[Sequence[int]] = None,
@@ -177,7 +177,11 @@ class GearField(Field):
         self.used_gears_seen: Tuple[Optional[Tensor], int, List[bool]] = (None, -1, [])
         """(used_columns tensor, its version, used_gears) when last read on the host (``gears_in_use``)."""
         self.basis = nn.Linear(3 * feature_dim * len(resolutions), feature_dim, bias=False)
-        self.gear_function = GearFunction(gear_feature_dim, gear_resolution, max(1, gear_time_resolution or num_frames))
+        # The gear function's initial values come from a fork of the random stream, so that the modules after it (and
+        # so the radiance field) start the same whatever its channels M' (`gear_feature_dim`).
+        with torch.random.fork_rng(devices=[]):
+            gear_rows = max(1, gear_time_resolution or num_frames)
+            self.gear_function = GearFunction(gear_feature_dim, gear_resolution, gear_rows)
 
         self.direction_encoding = SHEncoding(levels=4, implementation="torch")
         self.density_net = MLP(

@@ -32,9 +32,12 @@ class GearUpdateConfig:
     """lambda in L(r) = L_pho(r) + lambda L_SAM(r)."""
     variance_threshold: float = 1e-4
     """Updates stop once the mean variance of the loss maps is below this."""
-    mask_source: Literal["sam", "loss_threshold"] = "sam"
-    """'sam': SAM decoder on prompts; 'loss_threshold': RGB loss map above mean + k std (the paper's
-    "w/o embedding" ablation)."""
+    mask_source: Literal["auto", "sam", "loss_threshold"] = "auto"
+    """Where the upshift masks come from. 'sam': the SAM decoder on the loss map's prompts (the paper);
+    'loss_threshold': the RGB loss map above mean + k std (the paper's "w/o embedding" ablation); 'auto' (the
+    default): 'sam' with a SAM backend (`sam-onnx`), 'loss_threshold' with the built-in stand-in, whose decoder's
+    masks covered a median 17-27 % of the real captures' people where the loss threshold's, with S_static, put the
+    people at gear >= 2 on both (benchmarks/results/tracking_real.md, issue 26)."""
     depth_cue: bool = False
     """mask_source 'sam': the decoder also gets the loss map's rendered depth at its cells (`Embedding.depth`, the
     built-in stand-in's depth cue; SAM ignores it), so that an upshift mask stops at the moving object's outline
@@ -47,17 +50,16 @@ class GearUpdateConfig:
     """Rays sampled inside (S_upshift) and outside (S_stay) the masks, per update."""
     stay_weight: float = 1.0
     """lambda_stay of Eq 10."""
-    static_views: int = 0
-    """Addition to Eq 10, S_static (0: off, the default): per update view, this many other training cameras at the
-    view's frame (fewer when the rig has fewer), each giving as many rays as the view's S_stay through its still
-    pixels (outside every moving patch of its motion gate), pulled to gear 1 in a weighted mean of their own. Eq 4
-    is a sum of products of planes, so an upshift lifts every point that shares a plane cell with the upshifted
-    ones; S_stay holds only what the update's views see. Measured with 32 gear channels
-    (`--pipeline.model.gear-feature-dim 32`) on the real captures (benchmarks/results/tracking_real.md, issue 26):
-    on `panoptic` (5 seeds) 94.2 % of the static scene at gear 1 at the held-out camera against 85.9 % without, but
-    on the 31-camera capture (3 seeds) 79.2 % against 86.4 %, with the walls and floor raised at two seeds; so it is
-    not the default. It needs the motion gate (``motion_threshold`` > 0) to tell still pixels, and is off
-    without it."""
+    static_views: int = 8
+    """Addition to Eq 10, S_static (0 turns it off): per update view, this many other training cameras at the view's
+    frame (fewer when the rig has fewer), each giving as many rays as the view's S_stay through its still pixels
+    (outside every moving patch of its motion gate), pulled to gear 1 in a weighted mean of their own. Eq 4 is a sum
+    of products of planes, so an upshift lifts every point that shares a plane cell with the upshifted ones; S_stay
+    holds only what the update's views see. It needs the 32 gear channels (`GearNeRFModelConfig.gear_feature_dim`)
+    and upshift masks that cover the moving objects: with the built-in stand-in's masks it raised the 31-camera
+    capture's walls and floor at two of three seeds, with the loss threshold's (``mask_source`` 'auto') it did not
+    (benchmarks/results/tracking_real.md, issue 26). It needs the motion gate (``motion_threshold`` > 0) to tell
+    still pixels, and is off without it."""
     static_weight: float = 1.0
     """Weight of S_static's mean in Eq 10."""
     margin: float = 0.25

@@ -30,15 +30,17 @@ def planned_updates(config: GearUpdateConfig, first_step: int, last_step: int) -
 
 
 def describe_plan(config: GearUpdateConfig, steps: List[int], cameras: Cameras, rays_per_batch: int) -> str:
-    """The planned update steps, and what an interval between them is for this data in passes over it."""
+    """The planned update steps, what an interval between them is for this data in passes over it, and where the
+    upshift masks come from (``config.mask_source``, 'sam' or 'loss_threshold')."""
     pixels = float((cameras.width * cameras.height).sum())
     passes = update_interval(config) * rays_per_batch / pixels
+    masks = "the SAM decoder on the loss maps' prompts" if config.mask_source == "sam" else "the RGB loss threshold"
     return (
         f"Gear updates (Sec 4.3) planned at steps {', '.join(map(str, steps))}: every {update_interval(config)} "
         f"iterations (L = {config.epochs_between_updates:g} epochs of {config.iterations_per_epoch}), while "
         f"L' = {config.epochs_after_updates:g} epochs remain; an interval is {passes:.3g} passes over the "
         f"{pixels / 1e6:.4g} M training pixels. They end early once the loss maps' mean variance is below "
-        f"{config.variance_threshold:g}."
+        f"{config.variance_threshold:g}. Upshift masks from {masks}."
     )
 
 

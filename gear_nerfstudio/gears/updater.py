@@ -74,6 +74,7 @@ from gear_nerfstudio.gears.schedule import (
     update_interval,
 )
 from gear_nerfstudio.gears.upshift import level_targets, select_points, shift_gears
+from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_depth, sample_features
 
 
@@ -127,6 +128,15 @@ class TrainingViews(Protocol):
         """The whole SAM embedding of a training image."""
 
 
+def with_mask_source(config: GearUpdateConfig, backend: SamBackend) -> GearUpdateConfig:
+    """The settings with mask_source 'auto' made concrete: 'loss_threshold' with the built-in stand-in, whose decoder
+    covered few of the real captures' people ("auto" in ``GearUpdateConfig.mask_source``), and 'sam' with any other
+    backend (SAM itself, as in the paper)."""
+    if config.mask_source != "auto":
+        return config
+    return replace(config, mask_source="loss_threshold" if isinstance(backend, BuiltinSamBackend) else "sam")
+
+
 class GearUpdater:
     """Runs the updates; called after every training iteration.
 
@@ -156,7 +166,7 @@ class GearUpdater:
         last_step: int,
         seed: int = 0,
     ):
-        self.config = config
+        self.config = with_mask_source(config, backend)
         self.target = target
         self.views = views
         self.backend = backend
@@ -170,7 +180,7 @@ class GearUpdater:
         if bool(state.finished):
             CONSOLE.log(f"Gear updates: finished before step {first_step} ({int(state.num_updates)} updates).")
         elif self.planned:
-            CONSOLE.log(describe_plan(config, self.planned, views.train_dataset.cameras, rays_per_batch))
+            CONSOLE.log(describe_plan(self.config, self.planned, views.train_dataset.cameras, rays_per_batch))
         elif int(state.num_updates) == 0:
             raise no_updates_error(config, first_step, last_step)
 

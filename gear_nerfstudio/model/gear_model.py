@@ -79,11 +79,12 @@ class GearNeRFModelConfig(ModelConfig):
     """M, the dimension of the feature f (Eq 3)."""
     resolutions: Tuple[int, ...] = (64, 128, 256, 512)
     """Spatial resolutions of the planes (features concatenated across resolutions before B_j)."""
-    gear_feature_dim: int = 8
+    gear_feature_dim: int = 32
     """M', channels of the gear function's planes h', k' (Eq 4; the paper does not state it). Points that share plane
     cells move up together: with 32, S_static (`GearUpdateConfig.static_views`) held `panoptic`'s static scene at
     gear 1 without holding its people back, which it did not with 8 (benchmarks/results/tracking_real.md, issue
-    26), at about 20 % more render time per sample."""
+    26), at about 20 % more render time per sample. Its initial values come from a fork of the random stream, so the
+    radiance field starts the same whatever M'."""
     gear_resolution: int = 64
     """Spatial resolution of h', k'."""
     gear_time_resolution: Optional[int] = None
@@ -110,7 +111,7 @@ class GearNeRFModelConfig(ModelConfig):
     one view or none, and at a novel view it shows as near blobs. 0 (the default) renders all space: at 2, a view
     wider than the rig's (the viewer's) reaches past the seen space, and there the built-in SAM stand-in gave a
     click on a sphere 8.5-10 % of the view instead of about 1.2 % (tracking_real.md in benchmarks/results).
-    ns-gear-track sets its own (`--min-views`, 2 by default). Training, and the gear updates' renders of training
+    ns-gear-track sets its own (`--min-views`, 4 by default). Training, and the gear updates' renders of training
     views (`all_space`), always see all space."""
     initial_density: Optional[float] = None
     """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's

@@ -6,7 +6,7 @@
 Clicks are pixels (x, y) of a dataset camera (`--click-camera`) or of one frame of a camera-path JSON
 as `ns-render camera-path` reads (`--click-camera-path`, `--click-frame`). Targets are dataset cameras
 (default: the held-out ones) and/or every frame of a camera-path JSON, tracked at `--times` (default:
-every frame of the trained window). Every view is rendered with the density only where at least `--min-views` (2)
+every frame of the trained window). Every view is rendered with the density only where at least `--min-views` (4)
 training cameras see (`fields.seen_space`), whatever the run itself renders. Each target view's mask at the clicked
 time is completed by multi-view agreement with the training views before it propagates (`--agreement`,
 `agreement.agreed_mask`). The output
@@ -108,13 +108,14 @@ class TrackCommand:
     agreement: bool = True
     """Refine each target view's mask at the clicked time by multi-view agreement: add the cells that the object's
     masks in most training views that see them, at the same time, put inside it (`agreement.agreed_mask`)."""
-    min_views: int = 2
+    min_views: int = 4
     """Render every view for tracking with the density only where at least this many training cameras see a point
     (`fields.seen_space`), whatever the run's `--pipeline.model.min-views` (the viewer's; 0 by default). Elsewhere
     the field was fitted from one view or none, and at a novel view it shows as near blobs that the decoder's depth
-    cue joins to the object: tracking a person into `panoptic`'s held-out camera (3 seeds, both people) gave mIoU /
-    t-mIoU 66.3 / 59.1 over all space and 74.4 / 62.4 with 2; on the 31 cameras and the synthetic scenes the means
-    moved by 0.2 or less (benchmarks/results/tracking_real.md). 0 renders all space."""
+    cue joins to the object: tracking a person into `panoptic`'s held-out camera (3 seeds, both people, the earlier
+    defaults' models) gave mIoU / t-mIoU 66.3 / 59.1 over all space, 74.4 / 62.4 with 2 and 74.3 / 61.7 with 4; with
+    S_static's models 4 left out a floater on one seed's click ray (benchmarks/results/tracking_real.md). 0 renders
+    all space."""
     min_accumulation: float = HIT_ACCUMULATION
     """A click ray whose accumulated density stays below this hits nothing (lower it for a model trained
     only briefly, whose density is still faint)."""
