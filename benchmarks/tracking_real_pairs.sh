@@ -4,7 +4,8 @@
 # defaults ("default") against a baseline ("baseline") trained with the ns-train options in $BASELINE_TRAIN and
 # tracked with $BASELINE_TRACK.
 #
-#   BASELINE_TRAIN="--pipeline.gear-updates.static-views 0 --pipeline.model.gear-feature-dim 8" \
+#   BASELINE_TRAIN="--pipeline.gear-updates.static-views 0 --pipeline.model.gear-feature-dim 8
+#     --pipeline.gear-updates.mask-source sam" \
 #   BASELINE_TRACK="--min-views 2" bash benchmarks/tracking_real_pairs.sh OUTPUT "SEEDS" [tracking_real.py options]
 #
 # Each run's log, its tracking table and its gear shares go to OUTPUT/<variant>_s<seed>.txt. The capture's masks are
