@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 from functools import partial
@@ -368,6 +369,8 @@ def test_onnx_backend_end_to_end_through_ns_train_and_ns_gear_track(onnx_files, 
     assert (run / "nerfstudio_models" / "step-000000019.ckpt").is_file()
     for number, step in ((1, 3), (2, 6), (3, 9)):  # epochs of one iteration: L = 3
         assert f"Gear update {number} at step {step}:" in trained.stdout, trained.stdout[-3000:]
+    log = " ".join(re.sub(r"\S+\.py:\d+", " ", trained.stdout).split())  # rich's log lines, unwrapped
+    assert "Upshift masks from the SAM decoder on the loss maps' prompts." in log  # mask_source 'auto' with SAM
     config = run / "config.yml"
 
     # The click: the middle of the fast sphere in cam01 at time 0.5 (frame 1), from the scene's ground truth.
