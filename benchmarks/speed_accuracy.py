@@ -193,11 +193,16 @@ def decay_over(steps: int) -> List[str]:
             for arg in (f"--optimizers.{group}.scheduler.max-steps", str(steps))]  # fmt: skip
 
 
+def mask_path(masks: Path, camera: str, number: int) -> Path:
+    """Where a real capture keeps a camera's foreground mask of one frame: ``<masks>/<camera>/<number:05d>.png``."""
+    return masks / camera / f"{number:05d}.png"
+
+
 def read_mask(masks: Path, camera: str, number: int) -> np.ndarray:
-    """A real capture's foreground mask ``<masks>/<camera>/<number:05d>.png`` as an (H, W) bool map."""
+    """A real capture's foreground mask (``mask_path``) as an (H, W) bool map."""
     from PIL import Image
 
-    return np.array(Image.open(masks / camera / f"{number:05d}.png").convert("L")) > 127
+    return np.array(Image.open(mask_path(masks, camera, number)).convert("L")) > 127
 
 
 def gear_mask_counts(levels: np.ndarray, moving: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ from nerfstudio.utils.eval_utils import eval_setup
 from PIL import Image
 
 from gear_masks import gear_map_picture, people_mask, pipeline_gear_shares
+from speed_accuracy import mask_path
 from gear_nerfstudio.fields.gear_function import GearFunction
 from gear_nerfstudio.gears.loss_maps import LossMap
 from gear_nerfstudio.gears.schedule import GearUpdateState, planned_updates
@@ -48,8 +49,7 @@ class MeasuredUpdater(GearUpdater):
         index = loss_map.image_index
         camera = dataset.metadata["camera_names"][int(dataset.metadata["camera_ids"][index])]
         number = int(dataset.metadata["frame_numbers"][int(dataset.metadata["frame_ids"][index])])
-        path = self.masks / camera / f"{number:05d}.png"
-        if not path.exists():
+        if not mask_path(self.masks, camera, number).exists():
             print(f"  view {camera} frame {number}: no true mask, the upshift mask is kept")
             return mask, points, labels
         truth = torch.from_numpy(people_mask(self.masks, camera, number, tuple(mask.shape))).to(mask.device)

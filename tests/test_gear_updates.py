@@ -18,7 +18,7 @@ from nerfstudio.scripts.train import _set_random_seed
 
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
 from gear_nerfstudio.fields.gear_field import GearField
-from gear_nerfstudio.gears.loss_maps import moving_patches, patch_prompts, patches_to_pixels
+from gear_nerfstudio.gears.loss_maps import moving_patches, moving_pixels, patch_prompts, patches_to_pixels
 from gear_nerfstudio.gears.schedule import GearUpdateState, NoGearUpdates, describe_plan, planned_updates
 from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.gears.upshift import level_targets, select_points, shift_gears, upshift_loss
@@ -262,10 +262,7 @@ def test_with_the_depth_cue_the_upshift_masks_decoder_gets_the_loss_maps_depth(l
         dataclasses.replace(embedding, depth=cue), points.numpy() * scale, labels.numpy().astype(np.int64)
     )
     expected = torch.nn.functional.interpolate(torch.from_numpy(decoded[:1]).float()[None], size=mask.shape, mode="area")
-    moving = patches_to_pixels(
-        moving_patches(loss_map.change, updater.config.patch_size, updater.config.motion_threshold),
-        tuple(mask.shape), updater.config.patch_size,
-    )
+    moving = moving_pixels(loss_map.change, updater.config.patch_size, updater.config.motion_threshold)
     assert torch.equal(mask, (expected[0, 0] > 0.5) & moving)
 
 
@@ -283,10 +280,7 @@ def test_with_the_built_in_stand_in_the_upshift_masks_are_the_loss_maps_high_rgb
             mask, points, labels = updater.upshift_mask(loss_map)
         finally:
             updater.config = config
-        moving = patches_to_pixels(
-            moving_patches(loss_map.change, config.patch_size, config.motion_threshold), tuple(mask.shape),
-            config.patch_size,
-        )
+        moving = moving_pixels(loss_map.change, config.patch_size, config.motion_threshold)
         values = loss_map.rgb_loss
         assert points is None and labels is None and bool(moving.any())
         assert torch.equal(mask, (values > values.mean() + k * values.std()) & moving)
@@ -321,9 +315,7 @@ def test_s_static_rays_come_from_the_still_pixels_of_other_cameras_at_the_views_
             assert int(frame_ids[index]) == int(frame_ids[5]) and int(camera_ids[index]) != int(camera_ids[5])
             _, image = updater.view(dataset, index)
             change = updater.change(index, image, config.motion_frames)
-            moving = patches_to_pixels(
-                moving_patches(change, config.patch_size, config.motion_threshold), tuple(change.shape), config.patch_size
-            )
+            moving = moving_pixels(change, config.patch_size, config.motion_threshold)
             rows, cols = pixels.long().unbind(-1)
             assert len(pixels) == 40 and not bool(moving[rows, cols].any()) and bool(moving.any())
             found.append(index)
