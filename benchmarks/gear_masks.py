@@ -8,13 +8,14 @@ pixel sees, ``GearNeRFModel.visible_gear_levels``).
 The held-out camera of ``panoptic-video`` (cam00) has no masks, so ``speed_accuracy.py`` cannot score its gear maps;
 this scores training cameras instead, rendered at a quarter of their size, or with ``--held-out`` the held-out
 camera of a run that held out one with masks (``tracking_real.py`` holds out cam20 of the 31-camera capture).
-Masks are ``<camera>/<frame:05d>.png``, numbered within the loaded window. It measures; it changes nothing.
+Masks are ``<camera>/<frame:05d>.png``, numbered within the loaded window. ``--per-frame`` also prints the shares of
+every camera and frame. It measures; it changes nothing.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence, Tuple
+from typing import Iterator, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -33,34 +34,38 @@ def people_mask(masks: Path, camera: str, number: int, shape: Tuple[int, int]) -
     return F.interpolate(mask, size=tuple(shape), mode="area")[0, 0].numpy() > 0.5
 
 
-@torch.no_grad()
-def gear_shares(
-    config: Path, masks: Path, cameras: Sequence[str], scale: float = 0.25, held_out: bool = False
-) -> Tuple[float, float]:
-    """People's pixels at gear >= 2 and other pixels at gear 1, over every frame of the given training cameras (of
-    the held-out cameras with `held_out`)."""
-    _, pipeline, _, _ = eval_setup(config, test_mode="test")
-    return pipeline_gear_shares(pipeline, masks, cameras, scale, held_out)
-
-
-@torch.no_grad()
 def pipeline_gear_shares(
     pipeline: Pipeline, masks: Path, cameras: Sequence[str], scale: float = 0.25, held_out: bool = False
 ) -> Tuple[float, float]:
-    """``gear_shares`` of a loaded pipeline."""
+    """People's pixels at gear >= 2 and other pixels at gear 1 in a loaded pipeline, over every frame of the given
+    training cameras (of the held-out cameras with `held_out`)."""
+    frames = frame_gear_counts(pipeline, masks, cameras, scale, held_out)
+    return shares(np.sum([counts for _, _, counts in frames], axis=0))
+
+
+@torch.no_grad()
+def frame_gear_counts(
+    pipeline: Pipeline, masks: Path, cameras: Sequence[str], scale: float = 0.25, held_out: bool = False
+) -> Iterator[Tuple[str, int, np.ndarray]]:
+    """Per camera and frame (numbered within the loaded window): ``gear_mask_counts`` of its gear map against the
+    people's mask."""
     datamanager = pipeline.datamanager
     model, dataset = pipeline.model, datamanager.eval_dataset if held_out else datamanager.train_dataset
     names, numbers = dataset.metadata["camera_names"], dataset.metadata["frame_numbers"]
     camera_ids, frame_ids = dataset.metadata["camera_ids"], dataset.metadata["frame_ids"]
-    counts = np.zeros(4, dtype=np.int64)
     for name in cameras:
         camera_id = names.index(name)
         for index in torch.nonzero(camera_ids == camera_id)[:, 0].tolist():
             camera = dataset.cameras[index : index + 1].to(model.device)
             camera.rescale_output_resolution(scale)
             levels = model.visible_gear_levels(camera).cpu().numpy()
-            people = people_mask(masks, name, int(numbers[int(frame_ids[index])]), levels.shape)
-            counts += gear_mask_counts(levels, people)
+            frame = int(frame_ids[index])
+            people = people_mask(masks, name, int(numbers[frame]), levels.shape)
+            yield name, frame, gear_mask_counts(levels, people)
+
+
+def shares(counts: np.ndarray) -> Tuple[float, float]:
+    """People's pixels at gear >= 2 and other pixels at gear 1, from summed ``gear_mask_counts``."""
     return counts[0] / max(counts[1], 1), counts[2] / max(counts[3], 1)
 
 
@@ -100,10 +105,16 @@ def main(
     masks: tyro.conf.Positional[Path],
     cameras: Tuple[str, ...] = ("cam05", "cam20"),
     held_out: bool = False,
+    per_frame: bool = False,
 ) -> None:
-    """Print the two shares of one run."""
-    people, static = gear_shares(config, masks, cameras, held_out=held_out)
-    print(f"{config.parent.name}: people's pixels at gear >= 2: {people:.3f}; other pixels at gear 1: {static:.3f}")
+    """Print the two shares of one run (with `per_frame`, also those of every camera and frame)."""
+    _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    frames = frame_gear_counts(pipeline, masks, cameras, held_out=held_out)
+    rows = [(f"{camera} frame {frame}", counts) for camera, frame, counts in frames]
+    total = (config.parent.name, np.sum([counts for _, counts in rows], axis=0))
+    for name, counts in (rows if per_frame else []) + [total]:
+        people, static = shares(counts)
+        print(f"{name}: people's pixels at gear >= 2: {people:.3f}; other pixels at gear 1: {static:.3f}")
 
 
 if __name__ == "__main__":
