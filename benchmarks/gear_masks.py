@@ -7,7 +7,8 @@ pixel sees, ``GearNeRFModel.visible_gear_levels``).
 
 The held-out camera of ``panoptic-video`` (cam00) has no masks, so ``speed_accuracy.py`` cannot score its gear maps;
 this scores training cameras instead, rendered at a quarter of their size, or with ``--held-out`` the held-out
-camera of a run that held out one with masks (``tracking_real.py`` holds out cam20 of the 31-camera capture).
+camera of a run that held out one with masks (``tracking_real.py`` holds out cam20 of the 31-camera capture;
+``ns-eval`` reports the same shares at the held-out camera, ``moving_at_gear_2`` and ``static_at_gear_1``).
 Masks are ``<camera>/<frame:05d>.png``, numbered within the loaded window. ``--per-frame`` also prints the shares of
 every camera and frame. It measures; it changes nothing.
 """
@@ -54,8 +55,12 @@ def frame_gear_counts(
     names, numbers = dataset.metadata["camera_names"], dataset.metadata["frame_numbers"]
     camera_ids, frame_ids = dataset.metadata["camera_ids"], dataset.metadata["frame_ids"]
     for name in cameras:
-        camera_id = names.index(name)
-        for index in torch.nonzero(camera_ids == camera_id)[:, 0].tolist():
+        indices = torch.nonzero(camera_ids == names.index(name))[:, 0].tolist() if name in names else []
+        if not indices:
+            split = "held-out" if held_out else "training"
+            present = sorted({names[int(i)] for i in camera_ids})
+            raise SystemExit(f"error: {name} is not a {split} camera of this run; its {split} cameras: {present}")
+        for index in indices:
             camera = dataset.cameras[index : index + 1].to(model.device)
             camera.rescale_output_resolution(scale)
             levels = model.visible_gear_levels(camera).cpu().numpy()
@@ -107,8 +112,12 @@ def main(
     held_out: bool = False,
     per_frame: bool = False,
 ) -> None:
-    """Print the two shares of one run (with `per_frame`, also those of every camera and frame)."""
+    """Print the two shares of one run (with `per_frame`, also those of every camera and frame): of the training
+    `cameras`, or with `held_out` of the run's held-out camera."""
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    if held_out:
+        metadata = pipeline.datamanager.eval_dataset.metadata
+        cameras = tuple(sorted({metadata["camera_names"][int(i)] for i in metadata["camera_ids"]}))
     frames = frame_gear_counts(pipeline, masks, cameras, held_out=held_out)
     rows = [(f"{camera} frame {frame}", counts) for camera, frame, counts in frames]
     total = (config.parent.name, np.sum([counts for _, counts in rows], axis=0))

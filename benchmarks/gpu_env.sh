@@ -2,10 +2,13 @@
 # The project's Python environment on a lent GPU machine (the workplace's device tool), whose image has PyTorch,
 # CUDA and most of nerfstudio's dependencies but not nerfstudio, and no network.
 #
-#   bash benchmarks/gpu_env.sh pack    here: the missing packages, as Python 3.12 / x86-64 files, into
+#   bash benchmarks/gpu_env.sh pack [FRAMES]
+#                                      here: the missing packages, as Python 3.12 / x86-64 files, into
 #                                      .device_site/site.tar.xz (xz, and without the parts that nothing here runs:
 #                                      a call carries 64 MiB with the working tree), and the real capture with the
-#                                      masks tracking_real.py needs into .device_site/real
+#                                      masks tracking_real.py needs into .device_site/real; with FRAMES, only the
+#                                      videos' first FRAMES frames (and their masks), to fit the call with a larger
+#                                      working tree
 #   bash benchmarks/gpu_env.sh setup   there (carry .device_site): unpack into /tmp/site, install this checkout
 #                                      into it (so that nerfstudio finds the plugin's entry points), and put the
 #                                      capture, if packed, where the benchmarks look (../shared/data/real); then
@@ -37,6 +40,17 @@ case "${1:-}" in
     # The masks of the cameras that tracking_real.py clicks in and tracks into (cam13, cam20).
     mkdir -p .device_site/real/panoptic_basketball_video_masks
     cp -r ../shared/data/real/panoptic_basketball_video_masks/cam{13,20} .device_site/real/panoptic_basketball_video_masks/
+    if [ -n "${2:-}" ]; then
+      # Stream copy of FRAMES + 6 packets: the decoder returns frames 0..FRAMES-1 bit for bit as from the whole video
+      # (checked on all 31 videos for FRAMES 30; with FRAMES + 1 a reordered B-frame near the cut came out wrong).
+      for video in .device_site/real/panoptic_basketball_video/cam*.mp4; do
+        .venv/bin/ffmpeg -v error -y -i "../shared/data/real/panoptic_basketball_video/$(basename "$video")" -c copy \
+          -frames:v $(($2 + 6)) "$video.cut.mp4" && mv "$video.cut.mp4" "$video"
+      done
+      find .device_site/real/panoptic_basketball_video_masks -name '*.png' | while read -r mask; do
+        [ "$((10#$(basename "$mask" .png)))" -lt "$2" ] || rm "$mask"
+      done
+    fi
     du -sh .device_site/*
     ;;
   setup)

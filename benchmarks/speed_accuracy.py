@@ -53,9 +53,11 @@ What is measured, and how:
 * Held-out metrics, per checkpoint: ``--eval-frames`` frames of the held-out camera, evenly spaced over the
   video, rendered with ``model.get_outputs_for_camera`` and scored with the model's
   ``get_image_metrics_and_images`` (PSNR, SSIM; LPIPS only when its weights are on disk, else "missing").
-* Gear maps, per checkpoint: ``model.visible_gear_levels`` (Eq 5 at the surface each pixel sees) on the same
-  frames: the share of moving pixels at gear >= 2 and of static pixels at gear 1 (synthetic: ground-truth
-  motion > 0; real: the foreground masks).
+* Moving region, per checkpoint (``gear_nerfstudio.model.moving_region``, as ns-eval): PSNR over the moving pixels
+  of the scored frames and over the rest, and with ``model.visible_gear_levels`` (Eq 5 at the surface each pixel
+  sees) the share of moving pixels at gear >= 2 and of the rest at gear 1. The moving pixels are the person masks
+  where a scene passes ``--moving-masks`` (``panoptic``, ``panoptic-video-full-30``), else the held-out pixels whose
+  colour changes over the window.
 * Render FPS, samples per ray, parameters (all, and in use), gear updates run (from the checkpoint), peak RSS.
 * Equal iterations: the last checkpoint. Equal training time (the headline): per scene, a time budget (the
   shortest mean total training time of the main methods, or ``--time-budget``); each run is scored at its
@@ -87,7 +89,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Literal, Optional, Tuple
+from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 import tyro
@@ -225,8 +227,6 @@ class Scene:
     """A real capture, read by ``parser``."""
     parser: str = "technicolor-data"
     """The dataparser of a real capture (synthetic scenes are written in the Neural 3D Video layout)."""
-    masks: Optional[Path] = None
-    """Foreground masks of a real capture: <camera>/<frame:05d>.png; None: the held-out camera has none."""
     parser_options: Tuple[str, ...] = ()
 
     def folder(self, output: Path) -> Path:
@@ -254,16 +254,6 @@ class Scene:
             "--cache-dir", str(output / "cache" / self.name), *self.parser_options,
         ]
 
-    def moving(self, output: Path) -> Optional[Callable[[int, int], np.ndarray]]:
-        """(frame index in the window, dataset frame number) -> (H, W) bool map of the held-out camera's moving
-        pixels; None when the held-out camera has no masks."""
-        if self.synthetic:
-            motion = np.load(self.folder(output) / "ground_truth" / f"{self.held_out}.npz")["motion"]
-            return lambda index, number: motion[index] > 0
-        if self.masks is None:
-            return None
-        return lambda index, number: read_mask(self.masks, self.held_out, number)
-
 
 SCENES: Dict[str, Scene] = {
     "mixed": Scene(
@@ -280,18 +270,31 @@ SCENES: Dict[str, Scene] = {
     ),
     "panoptic": Scene(
         "panoptic", "real: CMU Panoptic basketball, 320x180, 16 cameras (15 trained), 20 frames", 20, "06",
-        data=REAL / "panoptic_basketball", masks=REAL / "panoptic_basketball_masks",
-        parser_options=("--near", "0.3", "--far", "7"),
+        data=REAL / "panoptic_basketball",
+        parser_options=("--near", "0.3", "--far", "7", "--moving-masks", str(REAL / "panoptic_basketball_masks")),
     ),
     "panoptic-video": Scene(
         "panoptic-video", "real: CMU Panoptic basketball in the Neural 3D Video layout, 304x168 (downscale 2), 31 cameras "
         "(30 trained), frames 0-29", 30, "cam00", data=REAL / "panoptic_basketball_video", parser="neural-3d-video-data",
         parser_options=("--downscale-factor", "2", "--frame-count", "30"),
     ),
+    "panoptic-video-60": Scene(
+        "panoptic-video-60", "real: CMU Panoptic basketball in the Neural 3D Video layout, 304x168 (downscale 2), 31 "
+        "cameras (30 trained), frames 60-89 (no default was chosen on them), held-out cam20 with person masks", 30,
+        "cam20", data=REAL / "panoptic_basketball_video", parser="neural-3d-video-data",
+        parser_options=("--downscale-factor", "2", "--frame-start", "60", "--frame-count", "30",
+                        "--moving-masks", str(REAL / "panoptic_basketball_video_masks")),
+    ),
     "panoptic-video-full": Scene(
         "panoptic-video-full", "real: CMU Panoptic basketball in the Neural 3D Video layout at full size, 608x336, 31 "
         "cameras (30 trained), all 90 frames (for the GPU)", 90, "cam00", data=REAL / "panoptic_basketball_video",
         parser="neural-3d-video-data",
+    ),
+    "panoptic-video-full-30": Scene(
+        "panoptic-video-full-30", "real: CMU Panoptic basketball in the Neural 3D Video layout at full size, 608x336, "
+        "31 cameras (30 trained), frames 0-29, held-out cam20 with person masks (for the GPU)", 30, "cam20",
+        data=REAL / "panoptic_basketball_video", parser="neural-3d-video-data",
+        parser_options=("--frame-count", "30", "--moving-masks", str(REAL / "panoptic_basketball_video_masks")),
     ),
     "flame-steak": Scene(
         "flame-steak", "real: Neural 3D Video flame_steak, frame 0 only, 336x252 (downscale 2), 21 forward-facing "
@@ -300,8 +303,9 @@ SCENES: Dict[str, Scene] = {
     ),
 }
 """Scenes by name. ``panoptic`` holds out camera 06 (not the usual 10) because 10 has no masks; ``panoptic-video``
-holds out cam00, the parser's default and the view published methods hold out, which has none (no gear-map
-shares there)."""
+holds out cam00, the parser's default and the view published methods hold out, which has none (its moving region
+is the held-out view's colour change); ``panoptic-video-60`` is the window of the same capture that no default was
+chosen on, held out at cam20, which has masks."""
 
 
 @dataclasses.dataclass
@@ -462,7 +466,7 @@ class SpeedAccuracyBenchmark:
             "before_first_update": timing.get("before_first_update"),
             "update_reviews": update_reviews((run_dir / "train.log").read_text()),
             "checkpoints": evaluate_checkpoints(
-                run_dir / "config.yml", timing["checkpoints"], scene.moving(self.output), self.eval_frames, run_dir
+                run_dir / "config.yml", timing["checkpoints"], self.eval_frames, run_dir
             ),
         }
         record_path.write_text(json.dumps(record, indent=1))
@@ -567,11 +571,11 @@ class Report:
             "",
             "## Equal iterations",
             "",
-            "| scene | method | n | training time (s) | ms / iteration | PSNR | SSIM | LPIPS | accumulation | near layer "
-            "| gear updates "
+            "| scene | method | n | training time (s) | ms / iteration | PSNR | PSNR moving | PSNR rest | SSIM | LPIPS "
+            "| accumulation | near layer | gear updates "
             "| moving px at gear >= 2 | static px at gear 1 | samples / ray | render FPS | parameters (in use) "
             "| peak RSS (MiB) | training CPU time (s) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for scene in self.scenes:
             for method in self.methods(scene):
@@ -579,7 +583,8 @@ class Report:
                 lines.append(
                     f"| {scene} | {METHODS[method]} | {len(runs)} | {spread([r['train_seconds'] for r in runs], 0)} | "
                     f"{spread([1000 * r['train_seconds'] / r['iterations'] for r in runs], 0)} | "
-                    f"{spread([p['psnr'] for p in finals])} | {spread([p['ssim'] for p in finals], 3)} | "
+                    f"{spread([p['psnr'] for p in finals])} | {scores(finals, 'psnr_moving')} | "
+                    f"{scores(finals, 'psnr_static')} | {spread([p['ssim'] for p in finals], 3)} | "
                     f"{lpips_of(finals)} | {spread([p['accumulation'] for p in finals], 3)} | "
                     f"{share(finals, 'near_layer')} | {spread([p['gear_updates'] for p in finals], 0)} | "
                     f"{share(finals, 'moving_at_gear_2')} | {share(finals, 'static_at_gear_1')} | "
@@ -772,6 +777,12 @@ def ends_below_first_update(record: Dict[str, Any]) -> bool:
     return record["checkpoints"][-1]["psnr"] < before["psnr"]
 
 
+def scores(points: List[Dict[str, Any]], key: str) -> str:
+    """Mean ± spread of a score over runs, "missing" where a run could not compute it."""
+    values = [p.get(key) for p in points]
+    return "missing" if None in values else spread(values)
+
+
 def share(points: List[Dict[str, Any]], key: str) -> str:
     values = [p[key] for p in points if p[key] is not None]
     return "n/a" if not values else spread([100 * v for v in values], 0) + " %"
@@ -797,7 +808,6 @@ def has_lpips() -> bool:
 def evaluate_checkpoints(
     config_path: Path,
     checkpoints: List[Dict[str, float]],
-    moving: Optional[Callable[[int, int], np.ndarray]],
     eval_frames: int,
     pictures: Path,
 ) -> List[Dict[str, Any]]:
@@ -812,6 +822,9 @@ def evaluate_checkpoints(
 
     import torch
     from nerfstudio.utils.eval_utils import eval_load_checkpoint, eval_setup
+
+    from gear_nerfstudio.model.gear_model import MIN_MSE
+    from gear_nerfstudio.model.moving_region import SUMS, region_scores
 
     def no_sam(config):
         config.pipeline.datamanager.use_sam_features = False
@@ -835,7 +848,7 @@ def evaluate_checkpoints(
         metrics: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": [], "accumulation": [], "near_layer": []}
         last = entry["step"] == max(e["step"] for e in checkpoints)
         render_seconds, samples, pixels = 0.0, 0.0, 0
-        gear_counts = np.zeros(4, dtype=np.int64)
+        sums = {key: 0.0 for key in SUMS}
         for index in frames:
             if cuda:
                 torch.cuda.synchronize()
@@ -848,6 +861,8 @@ def evaluate_checkpoints(
             for name in metrics:
                 if name in image_metrics:
                     metrics[name].append(float(image_metrics[name]))
+            for name in SUMS:
+                sums[name] += image_metrics[name]
             samples += float(outputs["num_samples"].sum())
             pixels += outputs["num_samples"].numel()
             if last and index in (frames[0], frames[len(frames) // 2]):
@@ -856,11 +871,7 @@ def evaluate_checkpoints(
                 ):  # fmt: skip
                     pixels_uint8 = (image.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
                     Image.fromarray(pixels_uint8).save(pictures / f"held_out_{index:04d}_{name}.png")
-            if moving is None:
-                continue
-            levels = model.visible_gear_levels(dataset.cameras[index : index + 1], outputs).cpu().numpy()
-            frame = int(dataset.metadata["frame_ids"][index])
-            gear_counts += gear_mask_counts(levels, moving(frame, int(dataset.metadata["frame_numbers"][frame])))
+        scores = region_scores(sums, MIN_MSE)
         total = sum(p.numel() for p in model.parameters())
         unused = sum(p.numel() for p in model.field.parameters()) - model.field.parameters_in_use()
         results.append(
@@ -875,8 +886,7 @@ def evaluate_checkpoints(
                 "near_layer": float(np.mean(metrics["near_layer"])),
                 "fps": len(frames) / render_seconds,
                 "samples_per_ray": samples / pixels,
-                "moving_at_gear_2": float(gear_counts[0] / gear_counts[1]) if gear_counts[1] else None,
-                "static_at_gear_1": float(gear_counts[2] / gear_counts[3]) if gear_counts[3] else None,
+                **{name: scores.get(name) for name in ("psnr_moving", "psnr_static", "moving_at_gear_2", "static_at_gear_1")},
                 "gear_updates": int(pipeline.gear_update_state.num_updates),
                 "parameters": int(total),
                 "parameters_in_use": int(total - unused),

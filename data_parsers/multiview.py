@@ -63,6 +63,10 @@ class MultiViewVideoDataParserConfig(DataParserConfig):
     skip_damaged_frames: bool = False
     """Leave damaged frames (decoder errors, broken image files) out, with one warning line each, instead of
     stopping with an error."""
+    moving_masks: Optional[Path] = None
+    """Masks of what moves in the held-out camera, ``<folder>/<camera name>/<frame number:05d>.png`` (non-zero:
+    moving), for the scores inside and outside the moving region; None: the pixels whose colour changes over the
+    window (``gear_nerfstudio.model.moving_region``)."""
 
 
 @dataclass
@@ -134,6 +138,12 @@ class MultiViewVideoDataParser(DataParser):
         if not kept.any():
             raise DatasetError(f"{self.config.data}: every {split} frame of the window is damaged")
 
+        if split != "train" and self.config.moving_masks is not None:
+            for number in frames:
+                mask = self.config.moving_masks / held_out_name / f"{number:05d}.png"
+                if not mask.is_file():
+                    raise DatasetError(f"{mask}: no mask of what moves for the held-out camera at frame {number}")
+
         transform, scale = _normalisation(rig, self.config.orientation_method, self.config.scene_box, held_out)
         c2w = _apply(transform, scale, torch.from_numpy(rig.camera_to_worlds).float())
 
@@ -179,6 +189,7 @@ class MultiViewVideoDataParser(DataParser):
                 "frame_ids": frame_ids[kept],
                 "camera_names": list(rig.names),
                 "frame_numbers": list(frames),
+                "moving_masks": self.config.moving_masks,
             },
         )
 

@@ -9,13 +9,17 @@ updates work on the model and the datamanager through narrow interfaces (``gears
 
 from __future__ import annotations
 
-import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Type
+from typing import Dict, List, Literal, Optional, Tuple, Type
 
+import torch
+import torchvision.utils
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+from rich.progress import track
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from gear_nerfstudio.data.datamanager import GearDataManager, GearDataManagerConfig
@@ -23,7 +27,8 @@ from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.gears.config import GearUpdateConfig
 from gear_nerfstudio.gears.schedule import GearUpdateState
 from gear_nerfstudio.gears.updater import GearUpdater
-from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.model.gear_model import MIN_MSE, GearNeRFModelConfig, near_layer_warning
+from gear_nerfstudio.model.moving_region import SUMS, EvalViews, region_scores
 from gear_nerfstudio.sam.config import BuiltinSamConfig, SamConfigChoice
 from gear_nerfstudio.sam.interface import SamBackend
 from gear_nerfstudio.tracking.viewer import ViewerTracking
@@ -74,18 +79,72 @@ class GearPipeline(VanillaPipeline):
         check_sam_dim(config, self.sam_backend)
         self.datamanager.attach_sam(self.sam_backend)
         self.model.see_from(self.datamanager.train_dataparser_outputs.cameras)
+        if test_mode != "inference":
+            eval_dataset = self.datamanager.eval_dataset
+            self.model.eval_views = EvalViews(eval_dataset, eval_dataset.metadata.get("moving_masks"))
         self.gear_update_state = GearUpdateState(self.model.gear_assignment(), config.gear_updates.views_per_update)
         self.viewer_tracking = ViewerTracking(self.model, self.sam_backend)
         self.model.render_hooks.append(self.viewer_tracking.render_hook)
         self.viewer_speed = ViewerSpeed(self.model)
 
+    def get_eval_image_metrics_and_images(self, step: int) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+        """One held-out view's metrics during training, with its moving-region scores (``region_scores``); a near
+        layer in it is reported in one line that names it."""
+        self.eval()
+        camera, batch = self.datamanager.next_eval_image(step)
+        outputs = self.model.get_outputs_for_camera(camera)
+        metrics, images = self.model.get_image_metrics_and_images(outputs, batch)
+        metrics["num_rays"] = int(camera.height * camera.width * camera.size)
+        self.train()
+        self._warn_near_layer([{**metrics, "view": int(batch["image_idx"])}])
+        return self._scored(metrics), images
+
     def get_average_eval_image_metrics(
         self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False
     ) -> Dict[str, float]:
-        """nerfstudio's averages over the held-out images (ns-eval); the spread of a single image cannot be
-        computed and is left out instead of being written as NaN."""
-        metrics = super().get_average_eval_image_metrics(step, output_path, get_std)
-        return {key: value for key, value in metrics.items() if not (key.endswith("_std") and math.isnan(value))}
+        """ns-eval: the image metrics of every held-out view, averaged (with their spread over views when asked and
+        there are several); PSNR inside and outside the moving region and the gear shares over the pixels of all
+        views (``region_scores``). Views with a near layer are named in one warning line. ``output_path``: the
+        model's images of each view, as nerfstudio writes them."""
+        self.eval()
+        views: List[Dict[str, float]] = []
+        if output_path is not None:
+            output_path.mkdir(parents=True, exist_ok=True)
+        loader = self.datamanager.fixed_indices_eval_dataloader
+        for camera, batch in track(loader, description="Evaluating the held-out views", transient=True):
+            started = time.perf_counter()
+            outputs = self.model.get_outputs_for_camera(camera=camera)
+            metrics, images = self.model.get_image_metrics_and_images(outputs, batch)
+            metrics["fps"] = 1.0 / (time.perf_counter() - started)
+            metrics["num_rays_per_sec"] = metrics["fps"] * int(camera.height) * int(camera.width)
+            metrics["view"] = int(batch["image_idx"])
+            if output_path is not None:
+                for key, image in images.items():
+                    torchvision.utils.save_image(
+                        image.permute(2, 0, 1).cpu(), output_path / f"eval_{key}_{len(views):04d}.png"
+                    )
+            views.append(metrics)
+        self.train()
+        self._warn_near_layer(views)
+        averages: Dict[str, float] = {}
+        for key in sorted({key for view in views for key in view} - {"view"}):
+            values = torch.tensor([view[key] for view in views if key in view], dtype=torch.float64)
+            averages[key] = float(values.mean())
+            if get_std and len(values) > 1 and key not in SUMS:
+                averages[f"{key}_std"] = float(values.std())
+        return self._scored(averages)
+
+    @staticmethod
+    def _scored(metrics: Dict[str, float]) -> Dict[str, float]:
+        """The metrics with their ``moving_region`` sums replaced by the scores (``region_scores``)."""
+        sums = {key: metrics.pop(key) for key in SUMS if key in metrics}
+        return {**metrics, **(region_scores(sums, MIN_MSE) if len(sums) == len(SUMS) else {})}
+
+    def _warn_near_layer(self, views: List[Dict[str, float]]) -> None:
+        labelled = [(self.model.eval_views.label(int(view["view"])), view) for view in views if "view" in view]
+        warning = near_layer_warning(labelled, float(self.model.training_depth))
+        if warning:
+            CONSOLE.log(f"[yellow]{warning}")
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         """The datamanager's and the model's callbacks, the viewer tracking's (a training step makes its kept

@@ -36,6 +36,9 @@ def test_eval_reports_psnr_and_ssim_on_the_held_out_camera(trained):
     results = json.loads(out.read_text())["results"]
     assert math.isfinite(results["psnr"]) and 0.0 < results["ssim"] <= 1.0
     assert results["num_rays_per_sec"] > 0
+    # the spheres move, so the held-out view's colour changes: scores inside and outside that region, and gear shares
+    assert all(math.isfinite(results[key]) for key in ("psnr_moving", "psnr_static"))
+    assert all(0.0 <= results[key] <= 1.0 for key in ("moving_at_gear_2", "static_at_gear_1"))
 
 
 def edited_config(config_path: Path, target: Path, edit) -> Path:
@@ -60,6 +63,8 @@ def test_eval_of_a_single_held_out_image_writes_no_nan(trained):
     results = json.loads(out.read_text())["results"]
     assert math.isfinite(results["psnr"]) and not any(key.endswith("_std") for key in results), results
     assert "NaN" not in out.read_text()
+    # one frame without masks: nothing can be seen to move, so the moving region's scores are missing, not zero
+    assert "psnr_moving" not in results and "moving_at_gear_2" not in results and math.isfinite(results["psnr_static"])
 
 
 def test_eval_with_missing_data_stops_in_one_line(trained):

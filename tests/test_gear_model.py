@@ -1,7 +1,5 @@
 """GearNeRFModel: forward, losses, backward, parameter groups and evaluation on the CPU."""
 
-import re
-
 import pytest
 import torch
 
@@ -11,7 +9,7 @@ from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.model_components.scene_colliders import AABBBoxCollider, NearFarCollider
 
 from gear_nerfstudio.errors import InputError
-from gear_nerfstudio.model.gear_model import GearNeRFModelConfig, lpips_weights_path
+from gear_nerfstudio.model.gear_model import GearNeRFModelConfig, lpips_weights_path, near_layer_warning
 
 OUTPUT_KEYS = {"rgb", "depth", "accumulation", "sam", "gear_level", "gear", "num_samples"}
 METADATA = {"near": 0.5, "far": 4.5, "num_frames": 6, "unbounded": False}
@@ -249,9 +247,9 @@ def test_camera_appearance_codes_for_trained_held_out_and_unknown_cameras():
     assert not torch.allclose(outputs[1]["rgb"], outputs[2]["rgb"])
 
 
-def test_near_layer_report_compares_with_the_training_rays_depth(capsys):
+def test_near_layer_report_compares_with_the_training_rays_depth():
     """A training batch sets the reference depth; an opaque evaluation view that ends much closer than it is
-    reported (metric ``near_layer`` and a console line), one that ends as far is not."""
+    reported (metric ``near_layer``, and named in the warning line), one that ends as far is not."""
     model = make_model()
     model.train()
     rays, batch = make_rays(), make_batch()
@@ -267,8 +265,9 @@ def test_near_layer_report_compares_with_the_training_rays_depth(capsys):
         }  # fmt: skip
         metrics, _ = model.get_image_metrics_and_images(view, {"image": torch.rand(*size, 3)})
         assert metrics["near_layer"] == expected and metrics["accumulation"] == 1.0
-        printed = " ".join(re.sub(r"\S+\.py:\d+", " ", capsys.readouterr().out).split())  # rich's lines, unwrapped
-        assert ("an opaque layer sits in front of the camera" in printed) == (expected == 1.0)
+        warning = near_layer_warning([("cam00 frame 3", metrics), ("cam00 frame 4", {**metrics, "near_layer": 0.0})], reference)
+        assert (warning is not None) == (expected == 1.0)
+        assert warning is None or warning.endswith("in 1 of 2 evaluation views: cam00 frame 3 (100 %)"), warning
 
 
 def test_time_resolutions_override_sets_rows_of_each_gear():

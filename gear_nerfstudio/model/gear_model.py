@@ -47,6 +47,7 @@ from gear_nerfstudio.fields.gear_field import GearField, GearFieldHeadNames, sam
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
 from gear_nerfstudio.fields.seen_space import SeenSpace
 from gear_nerfstudio.model.image_render import render_image
+from gear_nerfstudio.model.moving_region import EvalViews, region_sums
 from gear_nerfstudio.model.renderers import GearLevelRenderer, SamRenderer
 from gear_nerfstudio.model.split_sampler import SplitSampler
 
@@ -219,6 +220,22 @@ def near_layer(depth: Float[Tensor, "*bs 1"], training_depth: Tensor) -> float:
     return float(near_layer_pixels(depth, training_depth).float().mean())
 
 
+def near_layer_warning(views: List[Tuple[str, Dict[str, float]]], training_depth: float) -> Optional[str]:
+    """One line naming the views (label, image metrics) that are opaque (accumulation above 0.9) and have more than
+    ``NEAR_LAYER_WARNING`` of their pixels in a near layer; None when there are none."""
+    layered = [
+        f"{label} ({100 * metrics['near_layer']:.0f} %)"
+        for label, metrics in views
+        if metrics["near_layer"] > NEAR_LAYER_WARNING and metrics["accumulation"] > 0.9
+    ]
+    if not layered:
+        return None
+    return (
+        f"Gear-NeRF: an opaque layer sits in front of the camera, closer than {NEAR_LAYER_DEPTH:g} x the training rays' "
+        f"median depth ({training_depth:.3g}), in {len(layered)} of {len(views)} evaluation views: {', '.join(layered)}"
+    )
+
+
 def lpips_weights_path() -> Path:
     """Where torchvision keeps the AlexNet weights that torchmetrics' LPIPS needs."""
     from torchvision.models import AlexNet_Weights
@@ -335,6 +352,9 @@ class GearNeRFModel(Model):
         self.extra_outputs: Set[str] = set()
         """Outputs that full-image renders compute beside ``render_outputs`` (``rendering``)."""
         self.register_buffer("training_depth", torch.zeros(()))
+        self.eval_views: Optional[EvalViews] = None
+        """The evaluation views' cameras, names and moving regions (set by the pipeline): with them, image metrics
+        include the sums of ``moving_region.region_sums``."""
 
     def gear_values(
         self, positions: Float[Tensor, "*bs 3"], times: Optional[Float[Tensor, "*bs 1"]]
@@ -650,19 +670,17 @@ class GearNeRFModel(Model):
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
-        """PSNR, SSIM (and LPIPS when its weights are local) on a full image; rgb, depth, gear images."""
+        """PSNR, SSIM (and LPIPS when its weights are local), accumulation and near layer on a full image; with
+        ``eval_views``, the sums of ``moving_region.region_sums`` for that view; rgb, depth, gear images."""
         image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
         rgb = outputs["rgb"]
         metrics_dict = self.image_metrics(rgb, image)
         metrics_dict["accumulation"] = float(outputs["accumulation"].mean())
         metrics_dict["near_layer"] = near_layer(outputs["depth"], self.training_depth)
-        if metrics_dict["near_layer"] > NEAR_LAYER_WARNING and metrics_dict["accumulation"] > 0.9:
-            CONSOLE.log(
-                f"[yellow]Gear-NeRF: {100 * metrics_dict['near_layer']:.0f} % of the evaluation view ends closer than "
-                f"{NEAR_LAYER_DEPTH:g} x the training rays' median depth ({float(self.training_depth):.3g}), with "
-                f"accumulation {metrics_dict['accumulation']:.2f} and PSNR {metrics_dict['psnr']:.1f} dB: an opaque layer "
-                "sits in front of the camera, in space that no training ray sees from its side."
-            )
+        if self.eval_views is not None and "image_idx" in batch:
+            index = int(batch["image_idx"])
+            levels = self.visible_gear_levels(self.eval_views.camera(index), outputs)
+            metrics_dict.update(region_sums(rgb, image, self.eval_views.moving(index, image), levels))
         images_dict = {
             "img": torch.cat([image, rgb], dim=1),
             "accumulation": colormaps.apply_colormap(outputs["accumulation"]),
