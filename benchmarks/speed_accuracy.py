@@ -512,8 +512,8 @@ class Report:
     def equal_time_table(self, clock: Clock) -> List[str]:
         """Each run at its last checkpoint within the scene's budget on this clock."""
         lines = [
-            "| scene | budget (s) | method | n | iteration reached | PSNR | SSIM | LPIPS |",
-            "|---|---|---|---|---|---|---|---|",
+            "| scene | budget (s) | method | n | iteration reached | PSNR | PSNR moving | PSNR rest | SSIM | LPIPS |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for scene in self.scenes:
             budget = self.budget(scene, clock)
@@ -521,11 +521,12 @@ class Report:
                 points = self.at_budget(scene, method, clock)
                 if any(p is None for p in points):
                     lines.append(f"| {scene} | {budget:.0f} | {METHODS[method]} | {len(points)} | "
-                                 "a run has no checkpoint within the budget | | | |")
+                                 "a run has no checkpoint within the budget | | | | | |")
                     continue
                 lines.append(
                     f"| {scene} | {budget:.0f} | {METHODS[method]} | {len(points)} | "
                     f"{spread([p['step'] + 1 for p in points], 0)} | {spread([p['psnr'] for p in points])} | "
+                    f"{scores(points, 'psnr_moving')} | {scores(points, 'psnr_static')} | "
                     f"{spread([p['ssim'] for p in points], 3)} | {lpips_of(points)} |"
                 )
         return lines
