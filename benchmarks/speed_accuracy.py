@@ -97,6 +97,7 @@ import tyro
 from compare_views import contact_sheet
 from environment import command_environment
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
+from gear_nerfstudio.model.moving_region import mask_path
 
 TRAIN_CHILD = "_train"
 """First argument of the child process that runs ``ns-train`` with the timing hooks."""
@@ -193,11 +194,6 @@ def decay_over(steps: int) -> List[str]:
     """``ns-train`` overrides that spread the radiance fields' cosine learning-rate decay over ``steps``."""
     return [arg for group in ("fields", "proposal-networks")
             for arg in (f"--optimizers.{group}.scheduler.max-steps", str(steps))]  # fmt: skip
-
-
-def mask_path(masks: Path, camera: str, number: int) -> Path:
-    """Where a real capture keeps a camera's foreground mask of one frame: ``<masks>/<camera>/<number:05d>.png``."""
-    return masks / camera / f"{number:05d}.png"
 
 
 def read_mask(masks: Path, camera: str, number: int) -> np.ndarray:

@@ -34,6 +34,7 @@ from nerfstudio.data.scene_box import SceneBox
 from gear_nerfstudio.data.errors import DatasetError
 from gear_nerfstudio.data.layouts import layout_hint
 from gear_nerfstudio.fields.appearance import RIG_CAMERA
+from gear_nerfstudio.model.moving_region import mask_path
 
 
 @dataclass
@@ -140,7 +141,7 @@ class MultiViewVideoDataParser(DataParser):
 
         if split != "train" and self.config.moving_masks is not None:
             for number in frames:
-                mask = self.config.moving_masks / held_out_name / f"{number:05d}.png"
+                mask = mask_path(self.config.moving_masks, held_out_name, number)
                 if not mask.is_file():
                     raise DatasetError(f"{mask}: no mask of what moves for the held-out camera at frame {number}")
 

@@ -37,6 +37,11 @@ SUMS = ("moving_error", "moving_pixels", "moving_gear_2_pixels", "static_error",
 """Per-view sums (``region_sums``), averaged over views before ``region_scores``."""
 
 
+def mask_path(folder: Path, camera: str, number: int) -> Path:
+    """Where a capture keeps a camera's mask of what moves at one frame: ``<folder>/<camera>/<number:05d>.png``."""
+    return folder / camera / f"{number:05d}.png"
+
+
 def _dilate(mask: Bool[Tensor, "H W"], radius: int) -> Bool[Tensor, "H W"]:
     return F.max_pool2d(mask[None, None].float(), 2 * radius + 1, stride=1, padding=radius)[0, 0] > 0
 
@@ -51,7 +56,7 @@ def changed_pixels(image: Float[Tensor, "H W 3"], background: Float[Tensor, "H W
     difference = (image - background).abs().amax(dim=-1)
     smooth = F.avg_pool2d(difference[None, None], 3, stride=1, padding=1, count_include_pad=False)[0, 0]
     changed = smooth > CHANGE_THRESHOLD
-    return _dilate(_dilate(_erode(changed, 1), 1), DILATION)
+    return _dilate(_erode(changed, 1), 1 + DILATION)  # opened, then dilated: square windows add up
 
 
 class EvalViews:
@@ -76,10 +81,6 @@ class EvalViews:
         """The view's camera name and frame number, as the dataset names them."""
         return f"{self.names[index]} frame {self.frame_numbers[index]}"
 
-    def mask_path(self, index: int) -> Path:
-        assert self.moving_masks is not None
-        return self.moving_masks / self.names[index] / f"{self.frame_numbers[index]:05d}.png"
-
     def background(self) -> Float[Tensor, "H W 3"]:
         """Per-pixel median of up to ``MEDIAN_FRAMES`` views spread over the window."""
         if self._background is None:
@@ -94,7 +95,7 @@ class EvalViews:
         masks, where nothing can be seen to move."""
         height, width = image.shape[:2]
         if self.moving_masks is not None:
-            path = self.mask_path(index)
+            path = mask_path(self.moving_masks, self.names[index], self.frame_numbers[index])
             try:
                 mask = Image.open(path).convert("L").resize((width, height), Image.Resampling.NEAREST)
             except OSError as err:
