@@ -2,7 +2,7 @@
 
 Every ``speed_accuracy.py`` run folder holds ``held_out_<frame>_{truth,render,gear}.png`` for the held-out frames of
 its last checkpoint. This tiles them: one row per frame; the ground truth of the first run, then each run's render,
-then the gear map of each run given with ``--gear-maps``.
+then the gear map of each run given with ``--gear-maps``; ``--crop`` keeps one box of each (the people).
 
     .venv/bin/python benchmarks/compare_views.py benchmarks/results/real_capture_budget_panoptic.png \\
         Gear-NeRF=outputs/sa2/runs/panoptic/gear-nerf-small/gear-nerf-seed42 \\
@@ -12,7 +12,7 @@ then the gear map of each run given with ``--gear-maps``.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import tyro
 from PIL import Image, ImageDraw
@@ -40,9 +40,15 @@ def held_out_stems(run: Path) -> List[str]:
 
 
 def main(
-    output: tyro.conf.Positional[Path], runs: tyro.conf.Positional[Tuple[str, ...]], gear_maps: Tuple[str, ...] = ()
+    output: tyro.conf.Positional[Path],
+    runs: tyro.conf.Positional[Tuple[str, ...]],
+    gear_maps: Tuple[str, ...] = (),
+    crop: Optional[Tuple[int, int, int, int]] = None,
 ) -> None:
-    """Write the contact sheet of ``runs`` (``label=run folder``, the first one's ground truth) to ``output``."""
+    """Write the contact sheet of ``runs`` (``label=run folder``, the first one's ground truth) to ``output``.
+
+    ``--crop left top right bottom``: only that box of every view (pixels of the held-out view), enlarged twice.
+    """
     folders = dict(run.split("=", 1) for run in runs)
     first = Path(next(iter(folders.values())))
     stems = held_out_stems(first)
@@ -50,6 +56,9 @@ def main(
     columns += [(label, Path(folder), "render") for label, folder in folders.items()]
     columns += [(f"{label} gear map", Path(folders[label]), "gear") for label in gear_maps]
     rows = [[Image.open(folder / f"{stem}_{kind}.png") for _, folder, kind in columns] for stem in stems]
+    if crop is not None:
+        size = (2 * (crop[2] - crop[0]), 2 * (crop[3] - crop[1]))
+        rows = [[tile.crop(crop).resize(size, Image.NEAREST) for tile in row] for row in rows]
     contact_sheet([label for label, _, _ in columns], rows).save(output)
     print(output)
 

@@ -36,7 +36,8 @@ thing each changes:
   untrained density ``initial-density``; for forward-facing rigs ``contraction`` (nerfacto's scene contraction
   beyond the box and its far plane); and the later levers of ``real_capture_causes.md``: ``gear-rows-1`` and
   ``gear-rows-4``, ``resolutions-64-128``, ``time-smoothness-1e-4``, the transparency loss ``accumulation-3e-4``,
-  ``accumulation-1e-3``, ``accumulation-1e-2``, ``gear-1-rows-quarter`` (gear 1 not static: T/4 rows),
+  ``accumulation-1e-3``, ``accumulation-1e-2``, ``gear-1-static`` (the paper's gear 1 of one row in time),
+  ``gear-rows-all`` (every gear T rows),
   ``views-every-frame`` (each gear update renders a view at every frame, at loss maps of 64 pixels), and
   ``lr-half-decay`` (the cosine schedule of a run twice as long, ending at about half the rate).
 
@@ -133,7 +134,8 @@ METHODS: Dict[str, str] = {
     "proposal-warmup": "Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
     "gear-rows-1": "Gear-NeRF with a gear function constant in time (k' of 1 row)",
     "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
-    "gear-1-rows-quarter": "Gear-NeRF whose gear 1 has T/4 rows in time (rows linear from T/4 to T) instead of 1",
+    "gear-1-static": "Gear-NeRF whose gear 1 has one row in time (Sec 4.4, the paper) instead of the presets' T/4",
+    "gear-rows-all": "Gear-NeRF whose every gear has T rows in time (no gear is static) instead of T/4 to T",
     "lr-half-decay": "Gear-NeRF whose learning rates follow the cosine schedule of a run twice as long (end at half)",
     "views-every-frame": "Gear-NeRF whose updates render a view at every frame (loss maps of 64 pixels) instead of 4",
     "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
@@ -151,8 +153,6 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
     uniform = ["--pipeline.model.base-sampler", "uniform"]
     samples_16 = ["--pipeline.model.num-samples", "16"]
     rays_768 = ["--pipeline.datamanager.train-num-rays-per-batch", "768"]
-    lowest = max(1, math.ceil(frames / 4))
-    quarter_rows = [str(round(lowest + (frames - lowest) * g / 3)) for g in range(4)]  # the presets' 4 gears
     overrides = {
         "gear-nerf": [],
         "kplanes": single,
@@ -176,7 +176,8 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
         "proposal-warmup": ["--pipeline.model.proposal-warmup", str(max(1, iterations // 6))],
         "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
         "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
-        "gear-1-rows-quarter": ["--pipeline.model.time-resolutions", *quarter_rows],
+        "gear-1-static": ["--pipeline.model.gear1-row-fraction", "0"],
+        "gear-rows-all": ["--pipeline.model.gear1-row-fraction", "1"],
         "lr-half-decay": decay_over(2 * iterations),
         "views-every-frame": ["--pipeline.gear-updates.views-per-update", str(frames),
                               "--pipeline.gear-updates.loss-map-size", "64", "--pipeline.gear-updates.patch-size", "4"],

@@ -85,6 +85,14 @@ def test_gear_masks_partition_samples():
 
 
 @pytest.mark.parametrize(
+    "num_gears, num_frames, fraction, expected",
+    [(4, 30, 0.25, [8, 15, 23, 30]), (4, 300, 0.25, [75, 150, 225, 300]), (4, 30, 1.0, [30] * 4), (4, 1, 0.5, [1] * 4)],
+)
+def test_gear_1_rows_as_a_fraction_of_the_frames(num_gears, num_frames, fraction, expected):
+    assert temporal_resolutions(num_gears, num_frames, fraction) == expected
+
+
+@pytest.mark.parametrize(
     "num_gears, num_frames, expected",
     [
         (4, 50, [1, 17, 34, 50]),

@@ -280,6 +280,17 @@ def test_time_resolutions_override_sets_rows_of_each_gear():
         make_model(num_gears=1, time_resolutions=(0,))
 
 
+def test_gear1_row_fraction_gives_gear_1_rows_in_time_growing_to_every_frame():
+    assert make_model(gear1_row_fraction=0.0).field.time_resolutions == [1, 3, 4, 6]
+    model = make_model(gear1_row_fraction=0.5)
+    assert model.field.time_resolutions == [3, 4, 5, 6]
+    assert [plane.shape[-2] for plane in model.field.time_planes[0].planes] == [3, 3]
+    assert make_model(gear1_row_fraction=1.0).field.time_resolutions == [6, 6, 6, 6]
+    assert make_model(gear1_row_fraction=0.5, time_resolutions=(1, 2, 3, 4)).field.time_resolutions == [1, 2, 3, 4]
+    with pytest.raises(ValueError, match="gear1_row_fraction"):
+        make_model(gear1_row_fraction=1.5)
+
+
 def test_eval_image_metrics():
     model = make_model()
     model.eval()

@@ -57,17 +57,20 @@ def sample_points(
     return RaySamples(frustums=frustums, times=times, metadata=metadata)
 
 
-def temporal_resolutions(num_gears: int, num_frames: int) -> List[int]:
+def temporal_resolutions(num_gears: int, num_frames: int, gear1_row_fraction: float = 0.0) -> List[int]:
     """Sec 4.4: temporal resolution of each gear's space-time planes.
 
-    Linear interpolation from 1 (G = 1) to ``num_frames`` (G = N_gear), rounded half up, at least 1.
-    With a single gear, that gear is the top gear and gets ``num_frames`` rows (plain K-Planes).
+    Linear interpolation from gear 1's rows, ``gear1_row_fraction * num_frames`` (at least 1; 0 gives the paper's
+    1 row), to ``num_frames`` rows at G = N_gear, rounded half up. A single gear is the top gear (plain K-Planes).
     """
     num_frames = max(1, num_frames)
+    if not 0.0 <= gear1_row_fraction <= 1.0:
+        raise ValueError(f"gear1_row_fraction must lie in [0, 1], got {gear1_row_fraction}")
     if num_gears == 1:
         return [num_frames]
+    lowest = max(1, math.floor(gear1_row_fraction * num_frames + 0.5))
     return [
-        max(1, math.floor(1 + (num_frames - 1) * (gear - 1) / (num_gears - 1) + 0.5))
+        max(1, math.floor(lowest + (num_frames - lowest) * (gear - 1) / (num_gears - 1) + 0.5))
         for gear in range(1, num_gears + 1)
     ]
 
@@ -107,6 +110,7 @@ class GearField(Field):
         gear_resolution: spatial resolution of the gear function's planes.
         gear_time_resolution: temporal resolution of k'; ``num_frames`` when None.
         time_resolutions: rows of each gear's space-time planes; ``temporal_resolutions`` (Sec 4.4) when None.
+        gear1_row_fraction: gear 1's rows as a fraction of ``num_frames`` when ``time_resolutions`` is None.
         geo_feat_dim: features passed from the density MLP to the colour MLP.
         hidden_dim: width of the density and SAM MLPs.
         hidden_dim_color: width of the colour MLP.
@@ -131,6 +135,7 @@ class GearField(Field):
         gear_resolution: int = 64,
         gear_time_resolution: Optional[int] = None,
         time_resolutions: Optional[Sequence[int]] = None,
+        gear1_row_fraction: float = 0.0,
         geo_feat_dim: int = 15,
         hidden_dim: int = 64,
         hidden_dim_color: int = 64,
@@ -154,7 +159,7 @@ class GearField(Field):
         self.geo_feat_dim = geo_feat_dim
         self.spatial_distortion = spatial_distortion
         if time_resolutions is None:
-            self.time_resolutions = temporal_resolutions(num_gears, num_frames)
+            self.time_resolutions = temporal_resolutions(num_gears, num_frames, gear1_row_fraction)
         elif len(time_resolutions) != num_gears or min(time_resolutions) < 1:
             raise ValueError(f"time_resolutions needs {num_gears} values >= 1 (one per gear), got {time_resolutions}")
         else:

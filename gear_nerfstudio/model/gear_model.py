@@ -91,9 +91,12 @@ class GearNeRFModelConfig(ModelConfig):
     gear_time_resolution: Optional[int] = None
     """Temporal resolution of k'; None uses num_frames."""
     time_resolutions: Optional[Tuple[int, ...]] = None
-    """Rows of each gear's space-time planes k^G (one value per gear); None: Sec 4.4, linear from 1 row
-    (gear 1) to num_frames rows (gear N_gear). With one gear, e.g. ``(T // 2,)`` gives the paper's "naive
-    temporal sampling" at medium temporal resolution."""
+    """Rows of each gear's space-time planes k^G (one value per gear); None: Sec 4.4, linear from gear 1's rows
+    (``gear1_row_fraction``) to num_frames rows (gear N_gear). With one gear, e.g. ``(T // 2,)`` gives the paper's
+    "naive temporal sampling" at medium temporal resolution."""
+    gear1_row_fraction: float = 0.0
+    """Rows of gear 1's space-time planes as a fraction of num_frames, growing linearly to num_frames at the top gear;
+    0: the paper's single row (Sec 4.4), a static gear 1. Ignored when ``time_resolutions`` is set."""
     geo_feat_dim: int = 15
     """Features from the density MLP to the colour MLP."""
     hidden_dim: int = 64
@@ -277,6 +280,7 @@ class GearNeRFModel(Model):
             gear_resolution=config.gear_resolution,
             gear_time_resolution=config.gear_time_resolution,
             time_resolutions=config.time_resolutions,
+            gear1_row_fraction=config.gear1_row_fraction,
             geo_feat_dim=config.geo_feat_dim,
             hidden_dim=config.hidden_dim,
             hidden_dim_color=config.hidden_dim_color,
