@@ -15,20 +15,16 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple, Type
+from typing import List, Type
 
 import numpy as np
 from nerfstudio.cameras.cameras import CameraType
 from nerfstudio.utils.rich_utils import CONSOLE
 from scipy.spatial.transform import Rotation
 
-from gear_nerfstudio.data_parsers.multiview import (
-    MultiViewVideoDataParser,
-    MultiViewVideoDataParserConfig,
-    ParsedRig,
-)
+from gear_nerfstudio.data_parsers.multiview import MultiViewVideoDataParserConfig, ParsedRig
+from gear_nerfstudio.data_parsers.video_rig import VideoRigDataParser
 from gear_nerfstudio.data.errors import DatasetError
-from gear_nerfstudio.data.frame_cache import cache_video_frames, video_info
 
 VIDEO_PATTERN = re.compile(r"^camera_\d{4}\.mp4$")
 REQUIRED_KEYS = (
@@ -56,7 +52,7 @@ class GoogleImmersiveDataParserConfig(MultiViewVideoDataParserConfig):
     """Far bound; the scene is treated as unbounded beyond sqrt(near * far) around the rig."""
 
 
-class GoogleImmersiveDataParser(MultiViewVideoDataParser):
+class GoogleImmersiveDataParser(VideoRigDataParser):
     config: GoogleImmersiveDataParserConfig
     default_held_out = "camera_0001"
     parser_name = "google-immersive-data"
@@ -78,12 +74,7 @@ class GoogleImmersiveDataParser(MultiViewVideoDataParser):
         models = sorted((m for m in models if m["name"] in videos), key=lambda m: m["name"])
         if not models:
             raise DatasetError(f"{folder / 'models.json'}: no camera matches a video file")
-        self._videos = [videos[m["name"]] for m in models]
-
-        infos = [video_info(v, self.config.cache_dir) for v in self._videos]
-        lengths = {v.name: info.num_frames for v, info in zip(self._videos, infos)}
-        if len(set(lengths.values())) > 1:
-            raise DatasetError(f"{folder}: videos have different lengths (frames): {lengths}")
+        infos = self.open_videos(folder, [videos[m["name"]] for m in models])
 
         n = len(models)
         c2w = np.zeros((n, 3, 4))
@@ -114,12 +105,6 @@ class GoogleImmersiveDataParser(MultiViewVideoDataParser):
             unbounded=True,
             frame_numbers=list(range(infos[0].num_frames)),
         )
-
-    def frame_files(
-        self, rig: ParsedRig, cameras: Sequence[int], frames: Sequence[int], sizes: Sequence[Tuple[int, int]]
-    ) -> List[List[Optional[Path]]]:
-        videos = [self._videos[cam] for cam in cameras]
-        return cache_video_frames(videos, frames, sizes, self.config.cache_dir, self.config.skip_damaged_frames)
 
 
 def _read_models(path: Path) -> List[dict]:

@@ -11,19 +11,14 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import List, Optional, Sequence, Tuple, Type
+from typing import Optional, Tuple, Type
 
 import numpy as np
 from nerfstudio.cameras.cameras import CameraType
 
-from gear_nerfstudio.data_parsers.multiview import (
-    MultiViewVideoDataParser,
-    MultiViewVideoDataParserConfig,
-    ParsedRig,
-)
+from gear_nerfstudio.data_parsers.multiview import MultiViewVideoDataParserConfig, ParsedRig
+from gear_nerfstudio.data_parsers.video_rig import VideoRigDataParser
 from gear_nerfstudio.data.errors import DatasetError
-from gear_nerfstudio.data.frame_cache import cache_video_frames, video_info
 
 VIDEO_PATTERN = re.compile(r"^cam\d{2}\.mp4$")
 UNSYNCHRONISED = {"coffee_martini": ("cam13",)}
@@ -38,7 +33,7 @@ class Neural3DVideoDataParserConfig(MultiViewVideoDataParserConfig):
     """Cameras to leave out; default: the known unsynchronised ones (coffee_martini: cam13)."""
 
 
-class Neural3DVideoDataParser(MultiViewVideoDataParser):
+class Neural3DVideoDataParser(VideoRigDataParser):
     config: Neural3DVideoDataParserConfig
     default_held_out = "cam00"
     parser_name = "neural-3d-video-data"
@@ -72,11 +67,7 @@ class Neural3DVideoDataParser(MultiViewVideoDataParser):
         videos = [videos[i] for i in keep]
         poses_bounds = poses_bounds[keep]
 
-        infos = [video_info(v, self.config.cache_dir) for v in videos]
-        lengths = {v.name: info.num_frames for v, info in zip(videos, infos)}
-        if len(set(lengths.values())) > 1:
-            raise DatasetError(f"{folder}: videos have different lengths (frames): {lengths}")
-        self._videos = videos
+        infos = self.open_videos(folder, videos)
 
         pose = poses_bounds[:, :15].reshape(-1, 3, 5)
         c2w = np.concatenate([pose[:, :, 1:2], -pose[:, :, 0:1], pose[:, :, 2:4]], axis=2)
@@ -99,9 +90,3 @@ class Neural3DVideoDataParser(MultiViewVideoDataParser):
             unbounded=False,
             frame_numbers=list(range(infos[0].num_frames)),
         )
-
-    def frame_files(
-        self, rig: ParsedRig, cameras: Sequence[int], frames: Sequence[int], sizes: Sequence[Tuple[int, int]]
-    ) -> List[List[Optional[Path]]]:
-        videos = [self._videos[cam] for cam in cameras]
-        return cache_video_frames(videos, frames, sizes, self.config.cache_dir, self.config.skip_damaged_frames)

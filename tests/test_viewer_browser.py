@@ -472,7 +472,7 @@ def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, bro
     # render decodes the clicked view's own features, `viewer.sam_view`, and the low-resolution render spreads the
     # mask by a render pixel or so). How well the built-in stand-in segments this blurry 400-iteration render
     # varies with the view (1 % to 4 % of it for a click on the sphere): the tracking benchmarks measure that
-    # (benchmarks/viewer_clicks.py for the viewer's views), not this test.
+    # (tracking_real.md for the viewer's views), not this test.
     before = settled_view(driver, box, 60)
     by_label(driver, "Output type", "input").click()
     option = f"//*[@role='option' and normalize-space()='{OUTPUT}']"

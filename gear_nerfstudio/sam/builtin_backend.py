@@ -38,7 +38,7 @@ it, such as a floater of the floor's colour below a sphere or a strip of light o
 the colours tell them apart: so the candidates of the features alone are ranked beside the cue's, those whose
 outline is at least half in front of what surrounds them (`_IN_FRONT`). In the viewer's wide view a click on a
 sphere of the synthetic scenes then gives mean IoU 77.6 instead of 70.9, a click on a person 56.8 and 58.0 on the
-two real captures, as before (benchmarks/viewer_clicks.py), and tracking into the 31 cameras' held-out camera mIoU
+two real captures, as before (tracking_real.md), and tracking into the 31 cameras' held-out camera mIoU
 75.1 / t-mIoU 65.0 instead of 72.3 / 63.5 (the other tracking figures unchanged).
 """
 

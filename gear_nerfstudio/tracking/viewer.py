@@ -28,7 +28,7 @@ the log.
 The viewer decodes the rendered SAM features with the depth cue, as `ns-gear-track` does (but without its multi-view
 agreement, which renders every training view for the clicked mask: seconds per click on a CPU). In a view as the viewer
 renders it (75 degrees, 64 pixels on the longer side, at the held-out camera's pose), one click per object
-(benchmarks/viewer_clicks.py, 3 trained runs each; tracking_real.md) gave the built-in stand-in a mask of mean IoU
+(3 trained runs each; tracking_real.md) gave the built-in stand-in a mask of mean IoU
 9.8 on the features alone and 56.8 with the cue for a person on the real `panoptic` capture (20.5 and 58.0 on the 31
 cameras), and 85.3 and 77.6 on the synthetic spheres, where two spheres that touch at one depth are one object to the
 cue. The decoder ranks the features alone's candidates beside the cue's (`builtin_backend`); with the cue alone, a
