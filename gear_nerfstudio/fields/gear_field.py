@@ -70,7 +70,7 @@ def temporal_resolutions(num_gears: int, num_frames: int, gear1_row_fraction: fl
         return [num_frames]
     lowest = max(1, math.floor(gear1_row_fraction * num_frames + 0.5))
     return [
-        max(1, math.floor(lowest + (num_frames - lowest) * (gear - 1) / (num_gears - 1) + 0.5))
+        math.floor(lowest + (num_frames - lowest) * (gear - 1) / (num_gears - 1) + 0.5)
         for gear in range(1, num_gears + 1)
     ]
 
