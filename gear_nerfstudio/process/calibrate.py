@@ -4,9 +4,9 @@ The cameras of a rig do not move, so all the instants a camera filmed constrain 
 extracted from the frames of each calibration instant (`<images>/<camera>/<instant>.png`) and matched between the
 cameras at the same instant (a moving scene matches only at one instant). Then each camera becomes one image in a
 second database, whose keypoints are those of all its instants and whose matches with another camera are the
-matches of all instants together: COLMAP verifies them (one epipolar geometry per camera pair, whatever the instant)
-and maps one image per camera, so a camera's intrinsics and pose are shared by its instants and people who moved
-between instants add points across the scene. The largest reconstruction is kept. Everything runs on the CPU.
+matches of all instants together: COLMAP verifies them (one epipolar geometry per camera pair, whatever the
+instant), pairs that fit only a pure rotation are forgotten, and COLMAP maps one image per camera, so a camera's
+intrinsics and pose are shared by its instants and people who moved between instants add points across the scene. The largest reconstruction is kept. Everything runs on the CPU.
 """
 
 from __future__ import annotations
@@ -23,6 +23,9 @@ from gear_nerfstudio.errors import InputError
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 """COLMAP camera models `--camera-model` accepts (perspective ones; distortion is removed when writing)."""
+
+SEED = 0
+"""COLMAP's RANSAC and mapper seed: two runs on the same frames give the same cameras."""
 
 
 @dataclass
@@ -63,7 +66,6 @@ def _calibrate(images: Path, work: Path, names, instants, camera_model, camera_p
     import pycolmap
 
     pycolmap.logging.minloglevel = 2  # COLMAP's own log: errors only; progress shows what runs
-    pycolmap.set_random_seed(0)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     if camera_params is not None:
@@ -91,10 +93,14 @@ def _calibrate(images: Path, work: Path, names, instants, camera_model, camera_p
     matching.skip_geometric_verification = True  # verified per camera pair, all instants together, below
     pycolmap.match_image_pairs(frames_db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
     _pool_instants(frames_db, cameras_db, images, names, instants, reader)
-    pycolmap.geometric_verification(cameras_db)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = SEED
+    pycolmap.geometric_verification(cameras_db, two_view_geometry_options=verification)
+    _drop_rotation_only_pairs(cameras_db)
     progress.advance(task)
 
     options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = SEED
     # Rigs film from far apart: a first pair with fewer matches and a narrower angle than COLMAP's defaults.
     options.mapper.init_min_num_inliers = 30
     options.mapper.init_min_tri_angle = 4.0
@@ -137,6 +143,22 @@ def _pool_instants(frames_db: Path, cameras_db: Path, images: Path, names, insta
                 found = frames.read_matches(frame_ids[f"{a}/{instant:05d}.png"], frame_ids[f"{b}/{instant:05d}.png"])
                 matches.append(found.astype(np.int64) + [shift[a, instant], shift[b, instant]])
             cameras.write_matches(camera_ids[a], camera_ids[b], np.concatenate(matches).astype(np.uint32))
+
+
+def _drop_rotation_only_pairs(cameras_db: Path) -> None:
+    """Forget the camera pairs whose verified matches fit a pure rotation (COLMAP's PANORAMIC or PLANAR_OR_PANORAMIC):
+    two fixed cameras of a rig stand apart, so such matches are repeated texture seen from symmetric places (a dome's
+    wall panels), and they registered Panoptic cameras turned by 70-140 degrees or with focal and distortion 10 % off
+    (benchmarks/results/process_windows.md)."""
+    import pycolmap
+
+    rotation_only = {
+        pycolmap.TwoViewGeometryConfiguration.PANORAMIC, pycolmap.TwoViewGeometryConfiguration.PLANAR_OR_PANORAMIC
+    }
+    with pycolmap.Database.open(cameras_db) as database:
+        for pair, geometry in zip(*database.read_two_view_geometries()):
+            if geometry.config in rotation_only:
+                database.delete_two_view_geometry(*pycolmap.pair_id_to_image_pair(pair))
 
 
 def _summary(reconstruction, names: Sequence[str]) -> Calibration:
