@@ -6,7 +6,8 @@ cameras at the same instant (a moving scene matches only at one instant). Then e
 second database, whose keypoints are those of all its instants and whose matches with another camera are the
 matches of all instants together: COLMAP verifies them (one epipolar geometry per camera pair, whatever the
 instant), pairs that fit only a pure rotation are forgotten, and COLMAP maps one image per camera, so a camera's
-intrinsics and pose are shared by its instants and people who moved between instants add points across the scene. The largest reconstruction is kept. Everything runs on the CPU.
+intrinsics and pose are shared by its instants and people who moved between instants add points across the scene.
+The largest reconstruction is kept. Everything runs on the CPU.
 """
 
 from __future__ import annotations
