@@ -11,7 +11,7 @@ from gear_nerfstudio.data_parsers.google_immersive import GoogleImmersiveDataPar
 from gear_nerfstudio.data_parsers.multiview import surrounds_scene
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
-from gear_nerfstudio.tracking.projection import project
+from gear_nerfstudio.projection import project
 from gear_nerfstudio.tools.synthetic.scene import SyntheticScene
 from gear_nerfstudio.tools.synthetic.writers import rig_for
 from tests.conftest import SHARED_REAL, SPECS

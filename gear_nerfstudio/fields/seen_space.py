@@ -19,7 +19,7 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.field_components.spatial_distortions import SceneContraction, SpatialDistortion
 from torch import Tensor
 
-from gear_nerfstudio.tracking.projection import project
+from gear_nerfstudio.projection import project
 
 
 def distinct_cameras(cameras: Cameras) -> Cameras:

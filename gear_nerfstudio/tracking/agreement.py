@@ -25,9 +25,9 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.projection import project
 from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_centres, pixel_cells
 from gear_nerfstudio.tracking.click import TrackingError, project_prompt, single_camera
-from gear_nerfstudio.tracking.projection import project
 from gear_nerfstudio.tracking.propagation import mask_cells, render_embedding, segment
 
 if TYPE_CHECKING:

@@ -51,9 +51,8 @@ from nerfstudio.model_components.ray_samplers import UniformSampler
 from torch import Tensor
 
 from gear_nerfstudio.errors import InputError
+from gear_nerfstudio.projection import project
 from gear_nerfstudio.sam.occlusion import in_front_share
-
-from gear_nerfstudio.tracking.projection import project
 
 if TYPE_CHECKING:
     from nerfstudio.models.base_model import Model
