@@ -57,17 +57,14 @@ class MultiViewVideoDataParserConfig(DataParserConfig):
     orientation_method: str = "up"
     """'up': rotate so the mean camera up is +z (nerfstudio's viewer convention); 'none': keep axes."""
     scene_box: Literal["auto", "frusta", "rig"] = "auto"
-    """What fits the scene box (bounded rigs): 'frusta': the cameras' view frusta between near and far
-    (forward-facing rigs); 'rig': the box of the camera centres, 10 % larger (rigs that surround their scene,
-    such as a dome, whose frusta reach far past the opposite wall); 'auto': 'rig' when the rig surrounds its
-    scene (``surrounds_scene``), else 'frusta'."""
+    """What the scene box fits (bounded rigs): 'frusta', the view frusta from near to far;
+    'rig', the camera centres, 10 % larger; 'auto': 'rig' for a rig around its scene."""
     skip_damaged_frames: bool = False
     """Leave damaged frames (decoder errors, broken image files) out, with one warning line each, instead of
     stopping with an error."""
     moving_masks: Optional[Path] = None
-    """Masks of what moves in the held-out camera, ``<folder>/<camera name>/<frame number:05d>.png`` (non-zero:
-    moving), for the scores inside and outside the moving region; None: the pixels whose colour changes over the
-    window (``gear_nerfstudio.model.moving_region``)."""
+    """Masks of the held-out camera's moving region, ``<folder>/<camera>/<frame:05d>.png``
+    (non-zero: moving); None: the pixels whose colour changes over the window."""
 
 
 @dataclass

@@ -130,8 +130,8 @@ class TrainingViews(Protocol):
 
 def with_mask_source(config: GearUpdateConfig, backend: SamBackend) -> GearUpdateConfig:
     """The settings with mask_source 'auto' made concrete: 'loss_threshold' with the built-in stand-in, whose decoder
-    covered few of the real captures' people ("auto" in ``GearUpdateConfig.mask_source``), and 'sam' with any other
-    backend (SAM itself, as in the paper)."""
+    covered few of the real captures' people (docs/decisions.md), and 'sam' with any other backend (SAM itself, as in
+    the paper)."""
     if config.mask_source != "auto":
         return config
     return replace(config, mask_source="loss_threshold" if isinstance(backend, BuiltinSamBackend) else "sam")

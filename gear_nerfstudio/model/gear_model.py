@@ -81,22 +81,18 @@ class GearNeRFModelConfig(ModelConfig):
     resolutions: Tuple[int, ...] = (64, 128, 256, 512)
     """Spatial resolutions of the planes (features concatenated across resolutions before B_j)."""
     gear_feature_dim: int = 32
-    """M', channels of the gear function's planes h', k' (Eq 4; the paper does not state it). Points that share plane
-    cells move up together: with 32, S_static (`GearUpdateConfig.static_views`) held `panoptic`'s static scene at
-    gear 1 without holding its people back, which it did not with 8 (benchmarks/results/tracking_real.md, issue
-    26), at about 20 % more render time per sample. Its initial values come from a fork of the random stream, so the
-    radiance field starts the same whatever M'."""
+    """M', channels of the gear function's planes h', k' (Eq 4; the paper does not state it). The radiance field
+    starts the same whatever M'."""
     gear_resolution: int = 64
     """Spatial resolution of h', k'."""
     gear_time_resolution: Optional[int] = None
     """Temporal resolution of k'; None uses num_frames."""
     time_resolutions: Optional[Tuple[int, ...]] = None
-    """Rows of each gear's space-time planes k^G (one value per gear); None: Sec 4.4, linear from gear 1's rows
-    (``gear1_row_fraction``) to num_frames rows (gear N_gear). With one gear, e.g. ``(T // 2,)`` gives the paper's
-    "naive temporal sampling" at medium temporal resolution."""
+    """Rows of each gear's space-time planes k^G, one value per gear; None: linear from gear 1's rows
+    (``gear1_row_fraction``) to num_frames at the top gear (Sec 4.4)."""
     gear1_row_fraction: float = 0.0
-    """Rows of gear 1's space-time planes as a fraction of num_frames, growing linearly to num_frames at the top gear;
-    0: the paper's single row (Sec 4.4), a static gear 1. Ignored when ``time_resolutions`` is set."""
+    """Rows of gear 1's space-time planes as a fraction of num_frames, growing linearly to num_frames at the top
+    gear; 0: the paper's single row (Sec 4.4), a static gear 1. Ignored when ``time_resolutions`` is set."""
     geo_feat_dim: int = 15
     """Features from the density MLP to the colour MLP."""
     hidden_dim: int = 64
@@ -106,17 +102,11 @@ class GearNeRFModelConfig(ModelConfig):
     sam_dim: int = 256
     """Dimension of the SAM encoder features."""
     appearance_dim: int = 16
-    """Channels of the per-camera appearance code in the colour MLP (exposure and white balance differ between a
-    rig's cameras); 0 turns it off. The held-out camera, and any camera without a rig index (viewer, camera paths),
-    is rendered with the mean code of the training cameras."""
+    """Channels of the per-camera appearance code in the colour MLP (exposure, white balance); 0: off. Other
+    cameras (held-out, viewer) take the training cameras' mean code."""
     min_views: int = 0
-    """Renders in evaluation mode (ns-eval, ns-render, the viewer) take the density only where at least this many
-    training cameras (all of a smaller rig's) see a point (`fields.seen_space`); elsewhere the field was fitted from
-    one view or none, and at a novel view it shows as near blobs. 0 (the default) renders all space: at 2, a view
-    wider than the rig's (the viewer's) reaches past the seen space, and there the built-in SAM stand-in gave a
-    click on a sphere 8.5-10 % of the view instead of about 1.2 % (tracking_real.md in benchmarks/results).
-    ns-gear-track sets its own (`--min-views`, 4 by default). Training, and the gear updates' renders of training
-    views (`all_space`), always see all space."""
+    """Evaluation renders (viewer, ns-render, ns-eval) keep the density only where at least this many training
+    cameras (all of a smaller rig's) see a point; 0: all space, as training."""
     initial_density: Optional[float] = None
     """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's
     initialisation, about exp(-1) = 0.37 (K-Planes)."""
@@ -147,8 +137,8 @@ class GearNeRFModelConfig(ModelConfig):
     proposal_weights_anneal_max_num_iters: int = 1000
     """Iterations over which the annealing reaches 1."""
     background_color: Literal["random", "last_sample", "black", "white"] = "last_sample"
-    """Background colour. The K-Planes plugin defaults to white for Blender scenes; real captures
-    without alpha use the colour of the last sample, as nerfacto."""
+    """Background colour; 'last_sample': each ray's last sample's colour (as nerfacto, for captures without
+    alpha)."""
     sam_loss_mult: float = 1.0
     """Weight of L_SAM (Eq 9), applied when the batch has "sam_features"."""
     plane_tv_mult: float = 2e-4
@@ -166,15 +156,10 @@ class GearNeRFModelConfig(ModelConfig):
     interlevel_loss_mult: float = 1.0
     """Proposal (interlevel) loss, proposal base sampler only."""
     accumulation_loss_mult: float = 0.0
-    """Weight of the training rays' mean transparency, mean(1 - A) with A = sum_i w_i the ray's accumulated weight, so
-    that a ray ends on a surface inside the far plane instead of taking part of its colour from the last-sample
-    background. Off by default: on the real dome captures 1e-3 lifted the held-out view's accumulation to 0.999 at
-    every seed and cleared a layer in front of the held-out camera at one seed of the 16-camera window, but grew such
-    layers at 3 of 5 seeds of the 31-camera capture (benchmarks/results/real_capture_causes.md)."""
+    """Weight of the training rays' mean transparency mean(1 - A), A = sum_i w_i, which pulls each ray to end on a
+    surface before the far plane; 0: off."""
     distortion_loss_mult: float = 0.0
-    """Distortion loss on the base samples, proposal base sampler only. Off by default: on the real capture the
-    distortion loss (K-Planes' 1e-3) lowered the held-out view's accumulation to 0.35 at one seed and cost 0.8-0.9 dB
-    at equal time (benchmarks/results/real_capture_causes.md)."""
+    """Weight of the distortion loss (Mip-NeRF 360) on the base samples, proposal base sampler only; 0: off."""
     render_outputs: Tuple[str, ...] = ("rgb", "depth", "accumulation", "gear")
     """Outputs of full-image renders (viewer, ns-render, ns-eval); add "sam", "gear_level" or "num_samples" to
     compute those as well (the SAM feature map costs an MLP per sample and 256 channels per pixel)."""
@@ -185,10 +170,8 @@ class GearNeRFModelConfig(ModelConfig):
     """Samples of each proposal iteration at full-image renders (proposal base sampler); None:
     num_proposal_samples."""
     render_chunk_samples: Optional[int] = None
-    """Samples evaluated at once in full-image renders; a chunk takes as many rays as fit (the memory bound). None:
-    2^15 on the CPU (the fastest of 2^13-2^17 on the real capture, `benchmarks/results/render_speed.md`), 2^21 on
-    a GPU (2.2-2.5x faster than 2^19 at 1352x1014 on an H200, at 7.9 GiB of peak memory against 3.4;
-    `benchmarks/results/gpu_speed.md`)."""
+    """Field samples evaluated at once in full-image renders (the memory bound; a chunk takes as many rays as fit);
+    None: 2^15 on the CPU, 2^21 on a GPU."""
 
 
 MIN_MSE = 1e-10

@@ -102,20 +102,14 @@ class TrackCommand:
     times: Optional[List[float]] = None
     """Times in [0, 1] to track to; default: every frame of the trained window."""
     propagation: Propagation = "embedding"
-    """Prompt at t +- 1: "box" (the mask's box, the paper) or "embedding" (ours: the same, but when the
-    box's mask disagrees with the cells whose rendered features match the object's, points spread over
-    those cells and their box prompt again)."""
+    """Prompt at t +- 1: "box", the mask's box (the paper); "embedding": the same, then points over the cells whose
+    rendered features match the object's, and their box, where the box's mask disagrees with those cells."""
     agreement: bool = True
     """Refine each target view's mask at the clicked time by multi-view agreement: add the cells that the object's
     masks in most training views that see them, at the same time, put inside it (`agreement.agreed_mask`)."""
     min_views: int = 4
-    """Render every view for tracking with the density only where at least this many training cameras see a point
-    (`fields.seen_space`), whatever the run's `--pipeline.model.min-views` (the viewer's; 0 by default). Elsewhere
-    the field was fitted from one view or none, and at a novel view it shows as near blobs that the decoder's depth
-    cue joins to the object: tracking a person into `panoptic`'s held-out camera (3 seeds, both people, the earlier
-    defaults' models) gave mIoU / t-mIoU 66.3 / 59.1 over all space, 74.4 / 62.4 with 2 and 74.3 / 61.7 with 4; with
-    S_static's models 4 left out a floater on one seed's click ray (benchmarks/results/tracking_real.md). 0 renders
-    all space."""
+    """Render every view with the density only where at least this many training cameras see a point, whatever
+    the run's `--pipeline.model.min-views`; 0: all space."""
     min_accumulation: float = HIT_ACCUMULATION
     """A click ray whose accumulated density stays below this hits nothing (lower it for a model trained
     only briefly, whose density is still faint)."""
