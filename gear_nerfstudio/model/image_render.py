@@ -13,59 +13,25 @@
 
 from __future__ import annotations
 
-from typing import Collection, ContextManager, Dict, List, Optional, Protocol, Tuple
+from typing import Collection, Dict, Tuple
 
 import torch
 from torch import Tensor
 
-from nerfstudio.cameras.rays import RayBundle, RaySamples
-from nerfstudio.model_components.renderers import AccumulationRenderer, DepthRenderer, RGBRenderer
-from nerfstudio.model_components.scene_colliders import SceneCollider
+from nerfstudio.cameras.rays import RayBundle
 
-from gear_nerfstudio.fields.gear_field import GearField, sample_points
+from gear_nerfstudio.fields.gear_field import sample_points
 from gear_nerfstudio.fields.gear_function import gear_level
 from gear_nerfstudio.fields.planes import broadcast_times, normalize_positions
-from gear_nerfstudio.model.renderers import GearLevelRenderer, SamRenderer
 from gear_nerfstudio.model.split_sampler import split_ray_samples
 
 VISIBLE_WEIGHT = 1e-5
 """Smallest weight w_i of a sample whose colour and SAM embedding a render computes."""
 
 
-class RenderSettings(Protocol):
-    """The model config's settings of full-image renders (``GearNeRFModelConfig`` has these)."""
-
-    split_base: int
-    render_outputs: Tuple[str, ...]
-    render_chunk_samples: Optional[int]
-
-
-class RenderedModel(Protocol):
-    """What a full-image render needs of the model: its field, samplers and renderers (``GearNeRFModel`` has
-    these)."""
-
-    config: RenderSettings
-    device: torch.device
-    field: GearField
-    collider: SceneCollider
-    renderer_rgb: RGBRenderer
-    renderer_accumulation: AccumulationRenderer
-    renderer_depth: DepthRenderer
-    renderer_sam: SamRenderer
-    renderer_gear_level: GearLevelRenderer
-
-    def sample_base(self, ray_bundle: RayBundle) -> Tuple[RaySamples, List[Tensor], List[RaySamples]]:
-        """Base samples of the rays (and the proposal sampler's weights and samples per level)."""
-
-    def render_sampling(self) -> ContextManager[int]:
-        """Inside, the base sampler draws the render sample counts; yields n."""
-
-    def gear_image(self, gear_level: Tensor) -> Tensor:
-        """The "gear" output of the rendered gear level."""
-
-
-def render_rays(model: RenderedModel, rays: RayBundle, names: Collection[str]) -> Tuple[Dict[str, Tensor], int]:
-    """The outputs ``names`` of a flat bundle of rays, and the number of field samples evaluated."""
+def render_rays(model: torch.nn.Module, rays: RayBundle, names: Collection[str]) -> Tuple[Dict[str, Tensor], int]:
+    """The outputs ``names`` of a flat bundle of rays of `model` (a ``GearNeRFModel``), and the number of field
+    samples evaluated."""
     field = model.field
     rays = model.collider(rays)
     base, _, _ = model.sample_base(rays)
@@ -111,7 +77,7 @@ def render_rays(model: RenderedModel, rays: RayBundle, names: Collection[str]) -
 
 
 @torch.no_grad()
-def render_image(model: RenderedModel, bundle: RayBundle, extra: Collection[str] = ()) -> Dict[str, Tensor]:
+def render_image(model: torch.nn.Module, bundle: RayBundle, extra: Collection[str] = ()) -> Dict[str, Tensor]:
     """``render_rays`` over a bundle of any shape, chunk by chunk; outputs of shape (*bundle, C) on the
     bundle's device."""
     names = set(model.config.render_outputs) | set(extra)
