@@ -145,6 +145,7 @@ def test_the_scene_reads_with_the_n3d_parser_and_comes_with_summary_and_plot(rig
     for frame in summary["frames"]:
         assert frame["cx"] == frame["w"] / 2 and frame["fl_x"] == frame["fl_y"]
         assert frame["reprojection_error_px"] < 2 and frame["observations"] > 20
+        assert not frame["self_check"]["doubtful"], frame  # every camera within 2 % and 1 degree of the truth
     assert (output / "rig.png").stat().st_size > 10_000
     assert (output / "sparse_points.ply").is_file() and (output / "colmap" / "sparse" / "cameras.bin").is_file()
     assert sorted(p.name for p in (output / "colmap").iterdir()) == ["sparse"]
@@ -236,7 +237,7 @@ def test_two_calibrations_of_the_same_frames_give_the_same_cameras(tmp_path):
     from PIL import Image
     from rich.progress import Progress
 
-    from gear_nerfstudio.process.calibrate import calibrate
+    from gear_nerfstudio.process.calibrate import reconstruct, summarise
 
     for name in CAMERAS:
         (tmp_path / name).mkdir()
@@ -244,6 +245,56 @@ def test_two_calibrations_of_the_same_frames_give_the_same_cameras(tmp_path):
     runs = []
     for _ in range(2):
         with Progress() as progress:
-            runs.append(calibrate(tmp_path, CAMERAS, [0], "SIMPLE_RADIAL", None, progress))
+            runs.append(summarise(reconstruct(tmp_path, CAMERAS, [0], "SIMPLE_RADIAL", None, progress), CAMERAS))
     assert np.array_equal(runs[0].cam_from_world, runs[1].cam_from_world)
     assert all(np.array_equal(a.params, b.params) for a, b in zip(runs[0].cameras, runs[1].cameras))
+
+
+BUMPED_OPTIONS = ("--calibration-frames", "0", "6")
+
+
+@pytest.fixture(scope="module")
+def bumped(tmp_path_factory):
+    """Folders of 7 frames of 8 N3D cameras, where cam03 shows cam11's view at every instant but the calibration
+    frames 0 and 6 (a camera knocked between them); and the scene ns-gear-process makes of them."""
+    from PIL import Image
+
+    root = tmp_path_factory.mktemp("bumped")
+    frames = root / "frames"
+    views = {name: decode(FLAME / f"{name}.mp4")[0] for name in (*CAMERAS[:8], "cam11")}
+    for name in CAMERAS[:8]:
+        (frames / name).mkdir(parents=True)
+        for instant in range(7):
+            view = views["cam11" if name == "cam03" and instant not in (0, 6) else name]
+            Image.fromarray(view).save(frames / name / f"{instant:03d}.png")
+    output = root / "scene"
+    result = ns("ns-gear-process", "--data", str(frames), "--output-dir", str(output), *BUMPED_OPTIONS, cwd=root)
+    return frames, output, result
+
+
+def test_the_self_check_names_a_camera_that_moved_between_instants(bumped):
+    """Both checks (frames 1 and 4, 2 and 5) see cam03 elsewhere: one line names it with the evidence,
+    transforms.json marks it, and only it, as doubtful."""
+    frames, output, result = bumped
+    lines = [line for line in result.stdout.splitlines() if line.startswith("Doubtful camera")]
+    assert len(lines) == 1 and lines[0].startswith("Doubtful camera cam03: "), result.stdout
+    assert "check 1: " in lines[0] and "check 2: " in lines[0] and "cam03 in the scene" in lines[0], lines
+    summary = json.loads((output / "transforms.json").read_text())
+    assert summary["self_check_frames"] == [[1, 4], [2, 5]]
+    doubtful = [frame["source"] for frame in summary["frames"] if frame["self_check"]["doubtful"]]
+    assert doubtful == ["cam03"], summary["frames"]
+    for frame in summary["frames"]:
+        assert len(frame["self_check"]["checks"]) == 2
+
+
+def test_doubtful_cameras_left_out_or_an_error(bumped, tmp_path):
+    frames, _, _ = bumped
+    result = process(frames, tmp_path / "scene", *BUMPED_OPTIONS, "--doubtful-cameras", "error")
+    expect_one_line_error(result, str(frames), "doubtful cameras: cam03 (check 1: ")
+    output = tmp_path / "left_out"
+    result = command("ns-gear-process", "--data", str(frames), "--output-dir", str(output), *BUMPED_OPTIONS,
+                     "--doubtful-cameras", "leave-out", cwd=tmp_path)  # fmt: skip
+    assert "Doubtful camera cam03: " in result.stdout and "left out of the scene" in result.stdout, result.stdout
+    summary = json.loads((output / "transforms.json").read_text())
+    assert [frame["source"] for frame in summary["frames"]] == [n for n in CAMERAS[:8] if n != "cam03"]
+    assert np.load(output / "poses_bounds.npy").shape == (7, 17)

@@ -26,7 +26,7 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 """COLMAP camera models `--camera-model` accepts (perspective ones; distortion is removed when writing)."""
 
 SEED = 0
-"""COLMAP's RANSAC and mapper seed: two runs on the same frames give the same cameras."""
+"""COLMAP's RANSAC and mapper seed of a calibration: two runs on the same frames give the same cameras."""
 
 
 @dataclass
@@ -49,21 +49,31 @@ class Calibration:
     """The pycolmap.Reconstruction (the largest COLMAP made)."""
 
 
-def calibrate(
+def reconstruct(
     images: Path,
     names: Sequence[str],
     instants: Sequence[int],
     camera_model: str,
     camera_params: Optional[Sequence[float]],
     progress,
-) -> Calibration:
-    """Calibrate the cameras `names` from `<images>/<name>/<instant:05d>.png`; `progress` is a rich Progress. COLMAP's
-    scratch files (databases, pair list, models) live in a temporary folder."""
+    seed: int = SEED,
+    label: str = "",
+):
+    """The largest pycolmap.Reconstruction COLMAP makes of the frames `<images>/<name>/<instant:05d>.png` (None if it
+    makes none); `progress` is a rich Progress, `label` prefixes its lines. COLMAP's scratch files (databases, pair
+    list, models) live in a temporary folder."""
     with tempfile.TemporaryDirectory() as work:
-        return _calibrate(images, Path(work), names, instants, camera_model, camera_params, progress)
+        return _reconstruct(images, Path(work), names, instants, camera_model, camera_params, progress, seed, label)
 
 
-def _calibrate(images: Path, work: Path, names, instants, camera_model, camera_params, progress) -> Calibration:
+def registered(reconstruction) -> Dict[str, object]:
+    """The registered pycolmap.Image of each camera name (its folder in the frame names)."""
+    if reconstruction is None:
+        return {}
+    return {image.name.split("/")[0]: image for image in reconstruction.images.values() if image.has_pose}
+
+
+def _reconstruct(images: Path, work: Path, names, instants, camera_model, camera_params, progress, seed, label):
     import pycolmap
 
     pycolmap.logging.minloglevel = 2  # COLMAP's own log: errors only; progress shows what runs
@@ -76,14 +86,14 @@ def _calibrate(images: Path, work: Path, names, instants, camera_model, camera_p
     frame_names = [f"{name}/{instant:05d}.png" for name in names for instant in instants]
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.peak_threshold = 0.002  # more features on small, low-contrast frames (COLMAP: 0.0067)
-    task = progress.add_task("Extracting features", total=1)
+    task = progress.add_task(f"{label}Extracting features", total=1)
     pycolmap.extract_features(
         frames_db, images, image_names=frame_names, camera_mode=pycolmap.CameraMode.PER_FOLDER,
         reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
     )
     progress.advance(task)
 
-    task = progress.add_task("Matching", total=1)
+    task = progress.add_task(f"{label}Matching", total=1)
     pair_list = work / "pairs.txt"
     pair_list.write_text(
         "".join(f"{a}/{t:05d}.png {b}/{t:05d}.png\n" for t in instants for a, b in itertools.combinations(names, 2))
@@ -95,13 +105,13 @@ def _calibrate(images: Path, work: Path, names, instants, camera_model, camera_p
     pycolmap.match_image_pairs(frames_db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
     _pool_instants(frames_db, cameras_db, images, names, instants, reader)
     verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = SEED
+    verification.ransac.random_seed = seed
     pycolmap.geometric_verification(cameras_db, two_view_geometry_options=verification)
     _drop_rotation_only_pairs(cameras_db)
     progress.advance(task)
 
     options = pycolmap.IncrementalPipelineOptions()
-    options.random_seed = SEED
+    options.random_seed = seed
     # Rigs film from far apart: a first pair with fewer matches and a narrower angle than COLMAP's defaults.
     options.mapper.init_min_num_inliers = 30
     options.mapper.init_min_tri_angle = 4.0
@@ -109,13 +119,12 @@ def _calibrate(images: Path, work: Path, names, instants, camera_model, camera_p
     if camera_params is not None:
         options.ba_refine_focal_length = options.ba_refine_extra_params = False
         options.mapper.abs_pose_refine_focal_length = options.mapper.abs_pose_refine_extra_params = False
-    task = progress.add_task("Mapping (cameras registered)", total=len(names))
+    task = progress.add_task(f"{label}Mapping (cameras registered)", total=len(names))
     reconstructions = pycolmap.incremental_mapping(
         cameras_db, images, work / "models", options=options, next_image_callback=lambda: progress.advance(task)
     )
     progress.update(task, completed=len(names))
-    reconstruction = max(reconstructions.values(), key=lambda r: r.num_reg_images(), default=None)
-    return _summary(reconstruction, names)
+    return max(reconstructions.values(), key=lambda r: r.num_reg_images(), default=None)
 
 
 def _pool_instants(frames_db: Path, cameras_db: Path, images: Path, names, instants, reader) -> None:
@@ -162,12 +171,11 @@ def _drop_rotation_only_pairs(cameras_db: Path) -> None:
                 database.delete_two_view_geometry(*pycolmap.pair_id_to_image_pair(pair))
 
 
-def _summary(reconstruction, names: Sequence[str]) -> Calibration:
-    """Per camera: its COLMAP camera, pose, observed depths and reprojection error."""
-    registered = {} if reconstruction is None else {
-        image.name.split("/")[0]: image for image in reconstruction.images.values() if image.has_pose
-    }
-    missing = [name for name in names if name not in registered]
+def summarise(reconstruction, names: Sequence[str]) -> Calibration:
+    """Per camera of `names`: its COLMAP camera, pose, observed depths and reprojection error; an `InputError` names
+    the cameras the reconstruction did not register."""
+    images = registered(reconstruction)
+    missing = [name for name in names if name not in images]
     if missing:
         raise InputError(
             f"COLMAP registered {len(names) - len(missing)} of {len(names)} cameras; not registered: "
@@ -177,7 +185,7 @@ def _summary(reconstruction, names: Sequence[str]) -> Calibration:
     points = reconstruction.points3D
     cameras, poses, depths, errors = [], [], [], []
     for name in names:
-        image = registered[name]
+        image = images[name]
         pose = image.cam_from_world().matrix()
         observed = [p for p in image.points2D if p.has_point3D()]
         xyz = np.array([points[p.point3D_id].xyz for p in observed]).reshape(-1, 3)

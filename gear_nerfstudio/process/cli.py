@@ -4,9 +4,10 @@
 
 `--data` holds one video per camera (or one folder of frames per camera). The output holds `cam00.mp4` ... (the
 held-out camera first, the others in the sorted order of the input names), `poses_bounds.npy`, `transforms.json`
-(cameras, sources, offsets, reprojection errors, points), `sparse_points.ply`, COLMAP's model in `colmap/sparse/` and
-`rig.png`. Everything is written into a temporary folder beside the output and renamed at the end, so bad input
-(reported in one line) leaves nothing behind.
+(cameras, sources, offsets, reprojection errors, the self-check's judgement, points), `sparse_points.ply`, COLMAP's
+model in `colmap/sparse/` and `rig.png`. The self-check calibrates the rig again from other frames and names each
+camera it doubts, with the evidence (`self_check.py`). Everything is written into a temporary folder beside the
+output and renamed at the end, so bad input (reported in one line) leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from gear_nerfstudio.errors import InputError
-from gear_nerfstudio.process import calibrate, sync, write
+from gear_nerfstudio.process import calibrate, self_check, sync, write
 from gear_nerfstudio.process.footage import Footage, check_frame_rates, read_footage
 from gear_nerfstudio.process.plot import plot_rig
 
@@ -54,6 +55,10 @@ class ProcessCommand:
     """'audio': estimate the offsets from the audio tracks (cross-correlation); 'none': --offsets or all 0."""
     frame_rate: float = 30.0
     """Frame rate of folders of frames (videos carry their own)."""
+    self_check: bool = True
+    """Calibrate the rig again from other frames, twice, and name each camera that both disagree with as doubtful."""
+    doubtful_cameras: Literal["keep", "leave-out", "error"] = "keep"
+    """Doubtful cameras: 'keep' them (each named in one line), 'leave-out' of the scene, or stop with an 'error'."""
 
     def main(self) -> None:
         output = self.output_dir
@@ -118,22 +123,32 @@ class ProcessCommand:
         colmap = folder / "colmap"
         images = colmap / "images"
         instants = sorted(set(self.calibration_frames))
+        checks = self_check.check_instants(instants, count) if self.self_check else []
+        decoded = sorted(set(instants).union(*checks))
         with Progress(
             TextColumn("[bold blue]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
             console=CONSOLE, transient=True,
         ) as progress:
-            task = progress.add_task("Decoding calibration frames", total=len(cameras) * len(instants))
+            task = progress.add_task("Decoding calibration frames", total=len(cameras) * len(decoded))
             for camera, first in zip(cameras, firsts):
                 (images / camera.name).mkdir(parents=True)
-                for instant, rgb in zip(instants, camera.frames_at([first + instant for instant in instants])):
+                for instant, rgb in zip(decoded, camera.frames_at([first + instant for instant in decoded])):
                     _save_png(rgb, images / camera.name / f"{instant:05d}.png")
                     progress.advance(task)
-            result = calibrate.calibrate(
-                images, [c.name for c in cameras], instants, self.camera_model,
-                self.camera_params, progress,
+            inputs = [c.name for c in cameras]
+            result = calibrate.summarise(
+                calibrate.reconstruct(images, inputs, instants, self.camera_model, self.camera_params, progress), inputs
             )
+            judgements = self_check.judge(result, inputs, [
+                calibrate.reconstruct(
+                    images, inputs, frames, self.camera_model, self.camera_params, progress, seed=calibrate.SEED + k,
+                    label=f"Self-check {k}/{len(checks)}: ",
+                )
+                for k, frames in enumerate(checks, start=1)
+            ])
+            order, names = self._judged(judgements, cameras, order, names, checks)
             outputs = write.output_cameras(result)
-            task = progress.add_task("Writing videos (frames)", total=len(cameras) * count)
+            task = progress.add_task("Writing videos (frames)", total=len(order) * count)
             for index, name in zip(order, names):
                 maps = write.resampling_map(result.cameras[index], outputs[index])
                 write.write_video(
@@ -152,12 +167,15 @@ class ProcessCommand:
                 reprojection_error_px=float(result.reprojection_errors[index]),
                 observations=int(len(result.depths[index])),
             )
+            if checks:
+                frame["self_check"] = judgements[index].as_dict()
             frames.append(frame)
         summary = {
             "camera_model": "PINHOLE",
             "frame_rate": float(cameras[0].frame_rate),
             "num_frames": count,
             "calibration_frames": instants,
+            "self_check_frames": checks,
             "colmap_camera_model": self.camera_model,
             "reprojection_error_px": float(result.reconstruction.compute_mean_reprojection_error()),
             "num_points": int(len(result.points)),
@@ -166,16 +184,44 @@ class ProcessCommand:
         }
         (folder / "transforms.json").write_text(json.dumps(summary, indent=2))
         result.reconstruction.export_PLY(folder / "sparse_points.ply")
-        plot_rig(folder / "rig.png", c2w, names, result.points, result.colors)
+        plot_rig(folder / "rig.png", c2w, names, result.points, result.colors, [judgements[i].doubtful for i in order])
         (colmap / "sparse").mkdir()
         result.reconstruction.write(colmap / "sparse")
         shutil.rmtree(images)
         CONSOLE.print(
-            f"{len(cameras)} cameras registered, {len(result.points)} points, mean reprojection error "
+            f"{len(order)} cameras in the scene, {len(result.points)} points, mean reprojection error "
             f"{summary['reprojection_error_px']:.2f} px; {count} frames of {outputs[0].width}x{outputs[0].height}; "
             f"check the rig in {self.output_dir / 'rig.png'}",
             markup=False,
         )
+
+    def _judged(
+        self, judgements: List[self_check.Judgement], cameras: List[Footage], order: List[int], names: List[str],
+        checks: List[List[int]],
+    ) -> Tuple[List[int], List[str]]:
+        """Name each doubtful camera in one line; leave them out of `order` (and `names`) or stop, as asked."""
+        doubtful = [i for i in order if judgements[i].doubtful]
+        if doubtful and self.doubtful_cameras == "error":
+            raise InputError(
+                f"{self.data}: doubtful cameras: "
+                + ", ".join(f"{cameras[i].name} ({judgements[i].evidence})" for i in doubtful)
+                + "; calibrate from other --calibration-frames, or --doubtful-cameras leave-out"
+            )
+        kept = [i for i in order if i not in doubtful] if self.doubtful_cameras == "leave-out" else order
+        if len(kept) < 2:
+            raise InputError(f"{self.data}: {len(doubtful)} of {len(order)} cameras doubtful, fewer than 2 left")
+        scene = dict(zip(kept, names))
+        for i in doubtful:
+            advice = "left out of the scene" if i not in scene else (
+                f"{scene[i]} in the scene, orange in rig.png: check it there, calibrate from other "
+                "--calibration-frames, or --doubtful-cameras leave-out"
+            )
+            CONSOLE.print(
+                f"Doubtful camera {cameras[i].name}: calibrated again from frames "
+                f"{' and '.join(map(str, checks))}: {judgements[i].evidence}; {advice}",
+                markup=False, soft_wrap=True,
+            )
+        return kept, names[: len(kept)]
 
 
 def _save_png(rgb: np.ndarray, path: Path) -> None:

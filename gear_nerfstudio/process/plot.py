@@ -8,10 +8,13 @@ from typing import Sequence
 import numpy as np
 
 
-def plot_rig(path: Path, c2w: np.ndarray, names: Sequence[str], points: np.ndarray, colors: np.ndarray) -> None:
+def plot_rig(
+    path: Path, c2w: np.ndarray, names: Sequence[str], points: np.ndarray, colors: np.ndarray, doubtful: Sequence[bool]
+) -> None:
     """Save a PNG with two views of the rig: in 3D, and from above (along the cameras' mean up direction).
 
-    `c2w` is (N, 3, 4) camera-to-world in OpenCV axes; the first camera (the held-out one) is drawn in red.
+    `c2w` is (N, 3, 4) camera-to-world in OpenCV axes; the first camera (the held-out one) is drawn in red, the
+    doubtful ones in orange with a question mark.
     """
     import matplotlib
 
@@ -37,7 +40,8 @@ def plot_rig(path: Path, c2w: np.ndarray, names: Sequence[str], points: np.ndarr
     axes3d = figure.add_subplot(1, 2, 1, projection="3d")
     axes2d = figure.add_subplot(1, 2, 2)
     arrow = 0.15 * size
-    colour = ["red"] + ["blue"] * (len(names) - 1)
+    colour = ["orange" if doubt else "red" if i == 0 else "blue" for i, doubt in enumerate(doubtful)]
+    names = [f"{name}?" if doubt else name for name, doubt in zip(names, doubtful)]
     axes3d.scatter(*points.T, c=colors, s=1)
     axes3d.scatter(*centres.T, c=colour, s=20)
     axes3d.quiver(*centres.T, *(forward * arrow).T, color=colour)
@@ -50,7 +54,7 @@ def plot_rig(path: Path, c2w: np.ndarray, names: Sequence[str], points: np.ndarr
         axes2d.annotate(name, flat, fontsize=7)
     axes3d.set(xlim=(middle[0] - half, middle[0] + half), ylim=(middle[1] - half, middle[1] + half),
                zlim=(middle[2] - half, middle[2] + half))
-    axes3d.set_title("cameras (held-out in red), viewing directions, sparse points")
+    axes3d.set_title("cameras (held-out: red, doubtful: orange), views, sparse points")
     axes2d.set_title("seen from above (along the cameras' mean up)")
     axes2d.set_aspect("equal", adjustable="datalim")
     figure.tight_layout()
