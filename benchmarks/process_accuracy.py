@@ -3,7 +3,8 @@
 For each capture, the calibration is stripped (only the videos are copied), `ns-gear-process` runs on the videos,
 and the recovered cameras (its `poses_bounds.npy`) are compared with the capture's `poses_bounds.npy`: after a
 similarity alignment (Umeyama, `gear_nerfstudio.process.accuracy.pose_errors`), the centre error in % of the rig's size (the diagonal of
-the box of the true centres) and the rotation error in degrees, per camera. Writes
+the box of the true centres) and the rotation error in degrees, per camera, beside the cameras the command's
+self-check named as doubtful (`transforms.json`). Writes
 `benchmarks/results/process_accuracy.md` and the rig plot of each capture.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/process_accuracy.py
@@ -12,6 +13,7 @@ the box of the true centres) and the rotation error in degrees, per camera. Writ
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import shutil
@@ -65,9 +67,13 @@ def main() -> None:
             shutil.copy(output / "rig.png", picture)
             c, r = errors["centre_pct"], errors["rotation_deg"]
             good = int(((c <= 2) & (r <= 1)).sum())
+            frames = json.loads((output / "transforms.json").read_text())["frames"]
+            doubtful = [i for i, frame in enumerate(frames) if frame["self_check"]["doubtful"]]
+            missed = [i for i in np.flatnonzero((c > 2) | (r > 1)) if i not in doubtful]
             rows.append(
                 f"| {key} | {len(c)} | {c.mean():.2f} | {np.median(c):.2f} | {c.max():.2f} | {r.mean():.2f} | "
-                f"{np.median(r):.2f} | {r.max():.2f} | {good} / {len(c)} | {seconds:.0f} s | {' '.join(extra) or 'defaults (instants: first, middle, last frame)'} |"
+                f"{np.median(r):.2f} | {r.max():.2f} | {good} / {len(c)} | {_names(doubtful)} | {_names(missed)} | {seconds:.0f} s | "
+                f"{' '.join(extra) or 'defaults (instants: first, middle, last frame)'} |"
             )
             details.append(
                 f"- {key}: per camera (cam00, cam01, ...), centre % "
@@ -87,10 +93,11 @@ def main() -> None:
             "the capture's after a similarity alignment (Umeyama, on each camera's centre and two points one rig radius",
             "along its viewing and down axes; `gear_nerfstudio/process/accuracy.py`). Centre error in % of the rig's",
             "size (diagonal of the box of the true centres); rotation error in degrees. Target: 2 % and 1 degree.",
-            "Times are wall-clock on a machine shared with other runs.",
+            "Times are wall-clock on a machine shared with other runs; they include the self-check's two calibrations.",
             "",
-            "| capture | cameras | centre % mean | median | max | rotation deg mean | median | max | cameras within both | time | options |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+            "| capture | cameras | centre % mean | median | max | rotation deg mean | median | max | cameras within both | "
+            "named doubtful | outside both, not named | time | options |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
             *rows,
             "",
             *details,
@@ -115,6 +122,10 @@ def main() -> None:
     )
     args.output.write_text(text)
     print(text)
+
+
+def _names(cameras: Sequence[int]) -> str:
+    return ", ".join(f"cam{i:02d}" for i in cameras) or "none"
 
 
 def _pycolmap_version() -> str:
