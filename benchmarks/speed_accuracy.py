@@ -35,8 +35,8 @@ thing each changes:
   update warm-up at a sixth of the run, K-Planes' 5,000 of 30,000, instead of a fixed 5,000 steps); the field's
   untrained density ``initial-density``; for forward-facing rigs ``contraction`` (nerfacto's scene contraction
   beyond the box and its far plane); and the later levers of ``real_capture_causes.md``: ``gear-rows-1`` and
-  ``gear-rows-4``, ``resolutions-64-128``, ``time-smoothness-1e-4``, the transparency loss ``accumulation-3e-4``,
-  ``accumulation-1e-3``, ``accumulation-1e-2``, ``gear-1-static`` (the paper's gear 1 of one row in time),
+  ``gear-rows-4``, ``resolutions-64-128``, ``time-smoothness-1e-4``, ``gear-1-static`` (the paper's gear 1 of one
+  row in time),
   ``gear-rows-all`` (every gear T rows),
   ``views-every-frame`` (each gear update renders a view at every frame, at loss maps of 64 pixels), and
   ``lr-half-decay`` (the cosine schedule of a run twice as long, ending at about half the rate).
@@ -109,9 +109,6 @@ REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 Clock = Literal["seconds", "cpu_seconds"]
 """A checkpoint's training time: wall-clock or CPU seconds of the training process."""
 
-ACCUMULATION_WEIGHTS = ("3e-4", "1e-3", "1e-2")
-"""Weights of the transparency loss (``--pipeline.model.accumulation-loss-mult``) measured as methods."""
-
 METHODS: Dict[str, str] = {
     "gear-nerf": "Gear-NeRF",
     "kplanes": "plain K-Planes (N_gear = 1) with L_SAM",
@@ -140,8 +137,6 @@ METHODS: Dict[str, str] = {
     "views-every-frame": "Gear-NeRF whose updates render a view at every frame (loss maps of 64 pixels) instead of 4",
     "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
     "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
-    **{f"accumulation-{weight}": f"Gear-NeRF with a transparency loss on the training rays, weight {weight}"
-       for weight in ACCUMULATION_WEIGHTS},
 }
 """Method keys and their labels in the tables and the plot."""
 
@@ -183,8 +178,6 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
                               "--pipeline.gear-updates.loss-map-size", "64", "--pipeline.gear-updates.patch-size", "4"],
         "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
         "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
-        **{f"accumulation-{weight}": ["--pipeline.model.accumulation-loss-mult", weight]
-           for weight in ACCUMULATION_WEIGHTS},
     }
     if method not in overrides:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")

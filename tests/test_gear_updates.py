@@ -23,7 +23,6 @@ from gear_nerfstudio.gears.schedule import GearUpdateState, NoGearUpdates, descr
 from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.gears.upshift import level_targets, select_points, shift_gears, upshift_loss
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_small
-from gear_nerfstudio.sam.interface import cell_depth
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
 
 
@@ -238,34 +237,6 @@ def test_updates_end_when_the_loss_maps_are_flat(loop_run):
     assert int(flat.state.num_updates) == 0
 
 
-def test_with_the_depth_cue_the_upshift_masks_decoder_gets_the_loss_maps_depth(loop_run):
-    """``depth_cue``: the decoder sees the loss map's rendered depth at the cells of the view's embedding, so the
-    upshift mask is the decoder's mask for the same prompts on the embedding with that depth, cut to the moving
-    patches."""
-    _, trainer, updater = loop_run
-    pipeline = trainer.pipeline
-    with_cue = GearUpdater(
-        dataclasses.replace(updater.config, mask_source="sam", depth_cue=True), pipeline.model, pipeline.datamanager,
-        pipeline.sam_backend, updater.optimizer, GearUpdateState(pipeline.model.gear_assignment(), 4),
-        rays_per_batch=1024, first_step=0, last_step=LOOP_ITERATIONS - 1,
-    )  # fmt: skip
-    for index in range(len(pipeline.datamanager.train_dataset)):
-        loss_map = with_cue.loss_map(index)
-        mask, points, labels = with_cue.upshift_mask(loss_map)
-        if points is not None:
-            break
-    assert points is not None and bool(torch.isfinite(loss_map.depth).all()) and float(loss_map.depth.min()) > 0
-    embedding = pipeline.datamanager.train_embedding(index)
-    cue = cell_depth(loss_map.depth, embedding.image_size, embedding.grid_size)
-    scale = np.array([embedding.image_size[1] / mask.shape[1], embedding.image_size[0] / mask.shape[0]])
-    decoded, _ = pipeline.sam_backend.decode(
-        dataclasses.replace(embedding, depth=cue), points.numpy() * scale, labels.numpy().astype(np.int64)
-    )
-    expected = torch.nn.functional.interpolate(torch.from_numpy(decoded[:1]).float()[None], size=mask.shape, mode="area")
-    moving = moving_pixels(loss_map.change, updater.config.patch_size, updater.config.motion_threshold)
-    assert torch.equal(mask, (expected[0, 0] > 0.5) & moving)
-
-
 def test_with_the_built_in_stand_in_the_upshift_masks_are_the_loss_maps_high_rgb_loss_where_it_moves(loop_run):
     """mask_source 'auto' (the default) with the built-in stand-in is 'loss_threshold': the upshift mask is the RGB
     loss above its mean + k std, cut to the moving patches, without prompts; with k = 0 it grows."""
@@ -343,7 +314,7 @@ def test_the_updates_render_their_views_as_training_sees_the_scene(loop_run):
     try:
         assert float(model.render_view(before.camera)["accumulation"].max()) == 0.0
         after = updater.loss_map(0)
-        assert torch.equal(after.rgb_loss, before.rgb_loss) and torch.equal(after.depth, before.depth)
+        assert torch.equal(after.rgb_loss, before.rgb_loss) and torch.equal(after.surface, before.surface)
         assert updater.psnr(views) == psnr
         model.see_from(outputs.cameras)
         assert float(model.render_view(before.camera)["accumulation"].mean()) > 0.5

@@ -15,12 +15,11 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 import pytest
-import torch
 from scipy import ndimage
 
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.config import BuiltinSamConfig
-from gear_nerfstudio.sam.interface import Embedding, cell_depth, valid_grid
+from gear_nerfstudio.sam.interface import Embedding, valid_grid
 from gear_nerfstudio.tools.synthetic.scene import SyntheticScene
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
 from tests.test_tracking import with_true_depth
@@ -289,25 +288,6 @@ def test_the_features_alone_are_ranked_beside_the_cue(backend):
     size = tuple(int(v) for v in recorded["image_size"])
     masks, _ = backend.decode(Embedding(features, size, depth), recorded["click"][None])
     assert iou(masks[0], recorded["truth"]) > 0.85
-
-
-def test_depth_map_at_another_resolution_gives_the_cue_at_the_cells(backend):
-    """The gear updates' path: a depth map rendered at the loss map's size (here 128 x 96 for a 160 x 120 image)
-    becomes the cue at the cells (`cell_depth`, nearest pixel: an edge stays an edge, the padding stays zero) and
-    separates the shirt of the wall's colour as the depth at the cells does."""
-    rgb = np.repeat(np.repeat(np.linspace(120, 170, 160)[None, :, None], 120, axis=0), 3, axis=2)
-    shirt = np.zeros((120, 160), dtype=bool)
-    shirt[30:70, 60:100] = True
-    encoded = backend.encode(rgb.astype(np.uint8))
-    loss_map_depth = torch.full((96, 128), 5.0)
-    loss_map_depth[24:56, 48:80] = 2.0  # the shirt at 0.8 of the image's size
-    cue = cell_depth(loss_map_depth, encoded.image_size, encoded.grid_size)
-    rows, cols = valid_grid(encoded.image_size, encoded.grid_size)
-    assert cue.shape == (encoded.grid_size, encoded.grid_size) and not cue[rows:].any() and not cue[:, cols:].any()
-    assert set(np.unique(cue[:rows, :cols])) == {2.0, 5.0}
-    with_cue = Embedding(encoded.features, encoded.image_size, cue)
-    masks, _ = backend.decode(with_cue, np.array([[80.5, 50.5]]), np.array([1]))
-    assert iou(masks[0], shirt) > 0.75
 
 
 def test_negative_and_multiple_points(backend, scenes):

@@ -34,9 +34,6 @@ class GearUpdateConfig:
     mask_source: Literal["auto", "sam", "loss_threshold"] = "auto"
     """Upshift masks: 'sam', the SAM decoder on the loss map's prompts (the paper); 'loss_threshold', the RGB loss
     map above mean + k std ("w/o embedding"); 'auto': 'loss_threshold' with sam-builtin, else 'sam'."""
-    depth_cue: bool = False
-    """mask_source 'sam': the decoder also gets the loss map's rendered depth (the built-in stand-in's depth cue;
-    SAM ignores it), so that an upshift mask stops at the moving object's outline."""
     loss_threshold_std: float = 2.0
     """k for mask_source 'loss_threshold'."""
     rays_per_set: int = 4096

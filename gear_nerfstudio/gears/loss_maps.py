@@ -110,6 +110,5 @@ class LossMap:
     loss: Tensor  # (h, w) L(r)
     rgb_loss: Tensor  # (h, w) L_pho(r)
     surface: Tensor  # (h, w, 3) the surface point each pixel sees (rendered median depth)
-    depth: Tensor  # (h, w) that median depth
     change: Tensor  # (h, w) ground-truth change over the video (motion gate)
     local_change: Tensor  # (h, w) ground-truth change to the previous and next frames

@@ -75,7 +75,7 @@ from gear_nerfstudio.gears.schedule import (
 )
 from gear_nerfstudio.gears.upshift import level_targets, select_points, shift_gears
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
-from gear_nerfstudio.sam.interface import Embedding, SamBackend, cell_depth, sample_features
+from gear_nerfstudio.sam.interface import Embedding, SamBackend, sample_features
 
 
 class UpdateTarget(Protocol):
@@ -346,7 +346,7 @@ class GearUpdater:
             loss = loss + self.config.sam_loss_weight * sam_error.reshape(size)
         surface = self.target.visible_surface(camera, outputs)
         return LossMap(
-            image_index, camera, rgb, loss, rgb_loss, surface, outputs["depth"][..., 0],
+            image_index, camera, rgb, loss, rgb_loss, surface,
             self.change(image_index, image, self.config.motion_frames), self.change(image_index, image, 2, window=1),
         )  # fmt: skip
 
@@ -360,8 +360,7 @@ class GearUpdater:
     def upshift_mask(self, loss_map: LossMap) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
         """The upshift mask (h, w) of one view and its prompts (x, y), labels in loss-map pixels.
 
-        mask_source 'sam': the SAM decoder on the loss-map prompts and the ground-truth embedding, with the loss
-        map's rendered depth as its depth cue when ``depth_cue`` is on;
+        mask_source 'sam': the SAM decoder on the loss-map prompts and the ground-truth embedding;
         'loss_threshold': the RGB loss map above its mean + k std, without prompts. Either is cut to the
         moving patches (motion gate); with none, the mask is empty and no prompts are made.
         """
@@ -376,8 +375,6 @@ class GearUpdater:
             return torch.zeros(shape, dtype=torch.bool, device=loss_map.loss.device), None, None
         points, labels = patch_prompts(loss_map.loss, config.patch_size, config.top_k, moving)
         embedding = self.views.train_embedding(loss_map.image_index)
-        if config.depth_cue:
-            embedding = replace(embedding, depth=cell_depth(loss_map.depth, embedding.image_size, embedding.grid_size))
         height, width = shape
         scale = np.array([embedding.image_size[1] / width, embedding.image_size[0] / height])
         masks, _ = self.backend.decode(embedding, points=points.cpu().numpy() * scale, labels=labels.numpy().astype(np.int64))

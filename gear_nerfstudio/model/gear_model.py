@@ -155,9 +155,6 @@ class GearNeRFModelConfig(ModelConfig):
     """Time smoothness of the proposal networks (K-Planes DyNeRF)."""
     interlevel_loss_mult: float = 1.0
     """Proposal (interlevel) loss, proposal base sampler only."""
-    accumulation_loss_mult: float = 0.0
-    """Weight of the training rays' mean transparency mean(1 - A), A = sum_i w_i, which pulls each ray to end on a
-    surface before the far plane; 0: off."""
     distortion_loss_mult: float = 0.0
     """Weight of the distortion loss (Mip-NeRF 360) on the base samples, proposal base sampler only; 0: off."""
     render_outputs: Tuple[str, ...] = ("rgb", "depth", "accumulation", "gear")
@@ -600,8 +597,6 @@ class GearNeRFModel(Model):
             target = batch["sam_features"].to(self.device)
             loss_dict["sam_loss"] = config.sam_loss_mult * self.rgb_loss(target, outputs["sam"])
         if self.training:
-            if config.accumulation_loss_mult > 0:
-                loss_dict["accumulation_loss"] = config.accumulation_loss_mult * (1 - outputs["accumulation"]).mean()
             loss_dict["plane_tv"] = config.plane_tv_mult * outputs["regulariser_plane_tv"]
             loss_dict["l1_time_planes"] = config.l1_time_planes_mult * outputs["regulariser_l1_time_planes"]
             loss_dict["time_smoothness"] = config.time_smoothness_mult * outputs["regulariser_time_smoothness"]
@@ -617,9 +612,10 @@ class GearNeRFModel(Model):
                 loss_dict["interlevel_loss"] = config.interlevel_loss_mult * interlevel_loss(
                     outputs["weights_list"], outputs["ray_samples_list"]
                 )
-                loss_dict["distortion_loss"] = config.distortion_loss_mult * distortion_loss(
-                    outputs["weights_list"], outputs["ray_samples_list"]
-                )
+                if config.distortion_loss_mult > 0:
+                    loss_dict["distortion_loss"] = config.distortion_loss_mult * distortion_loss(
+                        outputs["weights_list"], outputs["ray_samples_list"]
+                    )
         return loss_dict
 
     def lpips(self) -> Optional[torch.nn.Module]:

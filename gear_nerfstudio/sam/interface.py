@@ -116,20 +116,6 @@ def cell_centres(image_size: Tuple[int, int], grid_size: int) -> Tensor:
     return torch.stack([xs, ys], dim=-1) / scale
 
 
-def cell_depth(depth: Tensor, image_size: Tuple[int, int], grid_size: int) -> np.ndarray:
-    """An embedding's depth cue (G, G) from a depth map (h, w) of an image of image_size (H, W) rendered at any
-    resolution: the map's pixel under each valid cell's centre (nearest, so that depth edges stay edges), zero on
-    the padding cells."""
-    rows, cols = valid_grid(image_size, grid_size)
-    centres = cell_centres(image_size, grid_size)
-    height, width = depth.shape
-    xs = (centres[..., 0] * width / image_size[1]).long().clamp(0, width - 1)
-    ys = (centres[..., 1] * height / image_size[0]).long().clamp(0, height - 1)
-    cue = np.zeros((grid_size, grid_size), dtype=np.float32)
-    cue[:rows, :cols] = depth.detach().cpu().float()[ys, xs].numpy()
-    return cue
-
-
 def sample_features(features: Tensor, pixels: Tensor, image_size: Tuple[int, int]) -> Tensor:
     """Bilinear features (N, C) at image pixel coordinates (N, 2) = (x, y) from a (C, G, G) grid."""
     grid_size = features.shape[-1]
