@@ -26,6 +26,16 @@ SPECS = {
 }
 
 
+def pytest_configure(config):
+    config.addinivalue_line("markers", "cost(seconds): about how long a module takes on one idle core")
+
+
+def pytest_collection_modifyitems(items):
+    """Modules by their ``cost`` mark, costliest first (unmarked ones last, as collected): with each module on one of
+    one process per core (scripts/test.sh), the long modules then start at once instead of ending the run alone."""
+    items.sort(key=lambda item: -(item.get_closest_marker("cost") or pytest.mark.cost(0)).args[0])
+
+
 @pytest.fixture(scope="session", autouse=True)
 def private_cache(tmp_path_factory):
     """Frame and SAM caches of every test (and the commands they start) go to a temporary folder."""

@@ -15,6 +15,8 @@ from gear_nerfstudio.tools.synthetic.writers import write_video
 from tests.conftest import IMPORT_WARNING, command
 from tests.test_dataparsers import parse
 
+pytestmark = pytest.mark.cost(40)
+
 
 @pytest.fixture()
 def copy_of(scene_dirs, tmp_path):

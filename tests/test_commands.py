@@ -15,6 +15,8 @@ from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParser
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from tests.conftest import IMPORT_WARNING, command, ns
 
+pytestmark = pytest.mark.cost(60)
+
 
 @pytest.fixture(scope="module")
 def trained(tiny_run):

@@ -25,6 +25,8 @@ from gear_nerfstudio.gears.upshift import level_targets, select_points, shift_ge
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_small
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
 
+pytestmark = pytest.mark.cost(420)
+
 
 def test_patch_prompts_pick_the_highest_and_lowest_patches():
     loss = torch.full((32, 48), 1.0)

@@ -6,6 +6,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.cost(50)
+
 BIN = Path(sys.executable).parent
 PARSERS = ["technicolor-data", "neural-3d-video-data", "google-immersive-data"]
 

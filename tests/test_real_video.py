@@ -11,6 +11,8 @@ import pytest
 
 from tests.conftest import SHARED_REAL, ns
 
+pytestmark = pytest.mark.cost(280)
+
 CAPTURE = SHARED_REAL / "panoptic_basketball"
 VIDEO = SHARED_REAL / "panoptic_basketball_video"
 

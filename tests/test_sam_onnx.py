@@ -47,9 +47,12 @@ from segment_anything.utils.onnx import SamOnnxModel  # noqa: E402
 from segment_anything.utils.transforms import ResizeLongestSide  # noqa: E402
 
 # Exporting segment-anything's modules warns about traced constants, the legacy exporter and indexing.
-pytestmark = pytest.mark.filterwarnings(
-    "ignore::torch.jit.TracerWarning", "ignore:.*legacy TorchScript-based ONNX", "ignore:Exporting aten..index operator"
-)
+pytestmark = [
+    pytest.mark.cost(70),
+    pytest.mark.filterwarnings(
+        "ignore::torch.jit.TracerWarning", "ignore:.*legacy TorchScript-based ONNX", "ignore:Exporting aten..index operator"
+    ),
+]
 
 IMAGE_SIZES = [(48, 40), (30, 40)]
 DECODER_INPUT_NAMES = [

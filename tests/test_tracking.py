@@ -47,6 +47,8 @@ from gear_nerfstudio.tracking.propagation import (
     track,
 )
 
+pytestmark = pytest.mark.cost(60)
+
 SLOW_SPHERE, FAST_SPHERE = 2, 3
 CLICK_CAMERA = "cam01"
 CLICK_FRAME = 1  # of 3: time 0.5

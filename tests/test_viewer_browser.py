@@ -35,6 +35,8 @@ from gear_nerfstudio.tracking.viewer import OUTPUT, Selection, highlight
 from gear_nerfstudio.viewer_speed import STILL_SECONDS, moving_rate, still_resolution
 from tests.conftest import BIN, ns
 
+pytestmark = pytest.mark.cost(180)
+
 STATIC_SPHERE, FAST_SPHERE = 1, 3
 SPEC = SyntheticSpec(dataset="n3d", width=32, height=24, frames=4, cameras=5, motion="fast")
 CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
@@ -478,13 +480,22 @@ def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, bro
     option = f"//*[@role='option' and normalize-space()='{OUTPUT}']"
     wait_for(lambda: driver.find_elements(By.XPATH, option), 30, f"the output {OUTPUT} in the list")
     driver.find_element(By.XPATH, option).click()
+    # Under load the still render can take longer than ``SETTLED``, so a settled view may still be the frame at the
+    # moving resolution, whose blocks spread the mask over several times its area: the highlight is read again from
+    # new screenshots until the still render has replaced it (or the wait fails with the last reading).
+    sphere, seen = truth[1] == STATIC_SPHERE, {}
+
+    def highlight(shot: np.ndarray) -> Optional[np.ndarray]:
+        green = (shot - before)[top : top + height, left : left + width] @ np.array([-0.5, 1.0, -0.5])
+        greener = green > 20.0
+        seen["on the sphere"] = float((greener & sphere).sum() / sphere.sum())
+        seen["x the selection's mask"] = float(greener.mean()) / (float(share.group(1)) / 100)
+        return shot if seen["on the sphere"] > 0.5 and 0.5 < seen["x the selection's mask"] < 2.0 else None
+
     shown = settled_view(driver, box, 60, differs_from=before)
+    if highlight(shown) is None:
+        shown = wait_for(lambda: highlight(screenshot(driver)), 60, f"the highlight of the selection ({value})", last=seen)
     Image.fromarray(shown.astype(np.uint8)).save(tmp_path / "tracked_mask.png")
-    green = (shown - before)[top : top + height, left : left + width] @ np.array([-0.5, 1.0, -0.5])
-    greener, sphere = green > 20.0, truth[1] == STATIC_SPHERE
-    assert (greener & sphere).sum() > 0.5 * sphere.sum(), "the highlight misses the selected sphere"
-    shown_share = float(greener.mean()) / (float(share.group(1)) / 100)
-    assert 0.5 < shown_share < 2.0, f"the highlight covers {shown_share:.2f} x the selection's mask: {value}"
 
     # A moved camera is redrawn: back to the output "rgb", a drag turns the view, and the screenshot changes when the
     # viewer's render from the new view arrives (the training cameras' frusta are hidden, so nothing else on the page
