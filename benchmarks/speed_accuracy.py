@@ -29,66 +29,51 @@ from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 Clock = Literal["seconds", "cpu_seconds"]
 """A checkpoint's training time: wall-clock or CPU seconds of the training process."""
 
-METHODS: Dict[str, str] = {
-    "gear-nerf": "Gear-NeRF",
-    "kplanes": "plain K-Planes (N_gear = 1) with L_SAM",
-    "no-split": "Gear-NeRF w/o split sampling",
-    "random-background": "Gear-NeRF trained on a random background colour (transparency costs loss)",
-    "lr-0.01": "Gear-NeRF at learning rate 0.01 (K-Planes') instead of 0.02",
-    "rays-2048": "Gear-NeRF on 2,048 rays per batch instead of 1,024",
-    "initial-density": "Gear-NeRF starting from density 2 per scene unit instead of about 0.37",
-    "contraction": "Gear-NeRF with space beyond the scene box contracted (far plane 1,000, as nerfacto)",
-    "samples-16": "Gear-NeRF with 16 base samples per ray instead of 24",
-    "samples-16-rays-768": "Gear-NeRF with 16 base samples per ray and 768 rays per batch",
-    "proposal-warmup": "Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
-    "gear-rows-1": "Gear-NeRF with a gear function constant in time (k' of 1 row)",
-    "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
-    "gear-1-static": "Gear-NeRF whose gear 1 has one row in time (Sec 4.4, the paper) instead of the presets' T/4",
-    "gear-rows-all": "Gear-NeRF whose every gear has T rows in time (no gear is static) instead of T/4 to T",
-    "lr-half-decay": "Gear-NeRF whose learning rates follow the cosine schedule of a run twice as long (end at half)",
-    "views-every-frame": "Gear-NeRF whose updates render a view at every frame (loss maps of 64 pixels) instead of 4",
-    "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
-    "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
+LR = " ".join(f"--optimizers.{group}.optimizer.lr 0.01" for group in ("fields", "proposal-networks", "gear-field"))
+DECAY = " ".join(f"--optimizers.{group}.scheduler.max-steps {{steps}}" for group in ("fields", "proposal-networks"))
+METHODS: Dict[str, Tuple[str, str]] = {
+    "gear-nerf": ("Gear-NeRF", ""),
+    "kplanes": ("plain K-Planes (N_gear = 1) with L_SAM", "--pipeline.model.num-gears 1"),
+    "no-split": ("Gear-NeRF w/o split sampling", "--pipeline.model.split-base 1"),
+    "random-background": ("Gear-NeRF trained on a random background colour (transparency costs loss)",
+                          "--pipeline.model.background-color random"),
+    "lr-0.01": ("Gear-NeRF at learning rate 0.01 (K-Planes') instead of 0.02", LR),
+    "rays-2048": ("Gear-NeRF on 2,048 rays per batch instead of 1,024",
+                  "--pipeline.datamanager.train-num-rays-per-batch 2048"),
+    "initial-density": ("Gear-NeRF starting from density 2 per scene unit instead of about 0.37",
+                        "--pipeline.model.initial-density 2"),
+    "contraction": ("Gear-NeRF with space beyond the scene box contracted (far plane 1,000, as nerfacto)",
+                    "--pipeline.model.unbounded True --pipeline.model.far-plane 1000"),
+    "samples-16": ("Gear-NeRF with 16 base samples per ray instead of 24", "--pipeline.model.num-samples 16"),
+    "samples-16-rays-768": ("Gear-NeRF with 16 base samples per ray and 768 rays per batch",
+                            "--pipeline.model.num-samples 16 --pipeline.datamanager.train-num-rays-per-batch 768"),
+    "proposal-warmup": ("Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
+                        "--pipeline.model.proposal-warmup {sixth}"),
+    "gear-rows-1": ("Gear-NeRF with a gear function constant in time (k' of 1 row)",
+                    "--pipeline.model.gear-time-resolution 1"),
+    "gear-rows-4": ("Gear-NeRF with a gear function of 4 rows in time (k')", "--pipeline.model.gear-time-resolution 4"),
+    "gear-1-static": ("Gear-NeRF whose gear 1 has one row in time (Sec 4.4, the paper) instead of the presets' T/4",
+                      "--pipeline.model.gear1-row-fraction 0"),
+    "gear-rows-all": ("Gear-NeRF whose every gear has T rows in time (no gear is static) instead of T/4 to T",
+                      "--pipeline.model.gear1-row-fraction 1"),
+    "lr-half-decay": ("Gear-NeRF whose learning rates follow the cosine schedule of a run twice as long (end at half)",
+                      DECAY.replace("{steps}", "{double}")),
+    "views-every-frame": ("Gear-NeRF whose updates render a view at every frame (loss maps of 64 pixels) instead of 4",
+                          "--pipeline.gear-updates.views-per-update {frames} --pipeline.gear-updates.loss-map-size 64 "
+                          "--pipeline.gear-updates.patch-size 4"),
+    "resolutions-64-128": ("Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
+                           "--pipeline.model.resolutions 64 128"),
+    "time-smoothness-1e-4": ("Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
+                             "--pipeline.model.time-smoothness-mult 1e-4"),
 }
-"""Method keys and their labels in the tables and the plot."""
+"""Method keys: (label in the tables and the plot, ns-train overrides on the base preset; ``method_overrides``)."""
 
 
 def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
-    """``ns-train`` overrides of a method on top of the base preset, for a run of ``iterations``."""
-    samples_16 = ["--pipeline.model.num-samples", "16"]
-    rays_768 = ["--pipeline.datamanager.train-num-rays-per-batch", "768"]
-    overrides = {
-        "gear-nerf": [],
-        "kplanes": ["--pipeline.model.num-gears", "1"],
-        "no-split": ["--pipeline.model.split-base", "1"],
-        "random-background": ["--pipeline.model.background-color", "random"],
-        "lr-0.01": [arg for group in ("fields", "proposal-networks", "gear-field")
-                    for arg in (f"--optimizers.{group}.optimizer.lr", "0.01")],  # fmt: skip
-        "rays-2048": ["--pipeline.datamanager.train-num-rays-per-batch", "2048"],
-        "initial-density": ["--pipeline.model.initial-density", "2"],
-        "contraction": ["--pipeline.model.unbounded", "True", "--pipeline.model.far-plane", "1000"],
-        "samples-16": samples_16,
-        "samples-16-rays-768": [*samples_16, *rays_768],
-        "proposal-warmup": ["--pipeline.model.proposal-warmup", str(max(1, iterations // 6))],
-        "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
-        "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
-        "gear-1-static": ["--pipeline.model.gear1-row-fraction", "0"],
-        "gear-rows-all": ["--pipeline.model.gear1-row-fraction", "1"],
-        "lr-half-decay": decay_over(2 * iterations),
-        "views-every-frame": ["--pipeline.gear-updates.views-per-update", str(frames),
-                              "--pipeline.gear-updates.loss-map-size", "64", "--pipeline.gear-updates.patch-size", "4"],
-        "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
-        "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
-    }
-    if method not in overrides:
+    """``ns-train`` overrides of a method for a run of ``iterations`` on ``frames`` frames."""
+    if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    return overrides[method]
-
-
-def decay_over(steps: int) -> List[str]:
-    """``ns-train`` overrides that spread the radiance fields' cosine learning-rate decay over ``steps``."""
-    return [arg for group in ("fields", "proposal-networks")
-            for arg in (f"--optimizers.{group}.scheduler.max-steps", str(steps))]  # fmt: skip
+    return METHODS[method][1].format(frames=frames, sixth=max(1, iterations // 6), double=2 * iterations).split()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -281,7 +266,7 @@ class SpeedAccuracy:
             "--output-dir", str(self.output / "runs"), "--experiment-name", scene.name,
             "--timestamp", f"{method}-seed{seed}", "--machine.seed", str(seed),
             "--max-num-iterations", str(iterations),
-            *decay_over(iterations),
+            *DECAY.format(steps=iterations).split(),
             "--steps-per-save", str(steps_per_save), "--save-only-latest-checkpoint", "False",
             "--steps-per-eval-batch", "0", "--steps-per-eval-image", "0", "--steps-per-eval-all-images", "0",
             "--machine.device-type", self.device, "--vis", "tensorboard",
@@ -372,11 +357,11 @@ class Report:
             for method in self.methods(scene):
                 points = self.at_budget(scene, method, clock)
                 if any(p is None for p in points):
-                    lines.append(f"| {scene} | {budget:.0f} | {METHODS[method]} | {len(points)} | "
+                    lines.append(f"| {scene} | {budget:.0f} | {METHODS[method][0]} | {len(points)} | "
                                  "a run has no checkpoint within the budget | | | | | |")
                     continue
                 lines.append(
-                    f"| {scene} | {budget:.0f} | {METHODS[method]} | {len(points)} | "
+                    f"| {scene} | {budget:.0f} | {METHODS[method][0]} | {len(points)} | "
                     f"{spread([p['step'] + 1 for p in points], 0)} | {spread([p['psnr'] for p in points])} | "
                     f"{scores(points, 'psnr_moving')} | {scores(points, 'psnr_static')} | "
                     f"{spread([p['ssim'] for p in points], 3)} | {lpips_of(points)} |"
@@ -395,7 +380,7 @@ class Report:
             f"Base preset `{b.base_preset}` with its own defaults (gear-update schedule included, scaled to the "
             f"iterations of each scene), device {b.device}. Held-out metrics on {b.eval_frames} frames of the held-out "
             f"camera, evenly spaced over the video.{lpips_note} Mean ± sample standard deviation over seeds; `n` is "
-            f"the number of seeds ({b.seeds} for {', '.join(METHODS[m] for m in b.main_methods)}"
+            f"the number of seeds ({b.seeds} for {', '.join(METHODS[m][0] for m in b.main_methods)}"
             + (", 1 for the ablations)." if b.ablations else ")."),
             "",
             "Scenes:",
@@ -409,7 +394,7 @@ class Report:
             )
         budget_rule = (
             "Each run at its last checkpoint within the scene's budget (the shortest mean total training time of "
-            + ", ".join(METHODS[m] for m in b.main_methods) + ")"
+            + ", ".join(METHODS[m][0] for m in b.main_methods) + ")"
         )
         lines += ["", "![PSNR against training time](speed_accuracy.png)", ""]
         if self.headline_clock == "cpu_seconds":
@@ -434,7 +419,7 @@ class Report:
             for method in self.methods(scene):
                 runs, finals = self.runs(scene, method), self.finals(scene, method)
                 lines.append(
-                    f"| {scene} | {METHODS[method]} | {len(runs)} | {spread([r['train_seconds'] for r in runs], 0)} | "
+                    f"| {scene} | {METHODS[method][0]} | {len(runs)} | {spread([r['train_seconds'] for r in runs], 0)} | "
                     f"{spread([1000 * r['train_seconds'] / r['iterations'] for r in runs], 0)} | "
                     f"{spread([p['psnr'] for p in finals])} | {scores(finals, 'psnr_moving')} | "
                     f"{scores(finals, 'psnr_static')} | {spread([p['ssim'] for p in finals], 3)} | "
@@ -524,7 +509,7 @@ class Report:
                 )
             lines.append(f"- {scene}: " + "; ".join(parts) + ".")
         below = [
-            f"{r['scene']} / {METHODS[r['method']]} / seed {r['seed']}" for r in self.records if ends_below_first_update(r)
+            f"{r['scene']} / {METHODS[r['method']][0]} / seed {r['seed']}" for r in self.records if ends_below_first_update(r)
         ]
         checked = sum(r.get("before_first_update") is not None for r in self.records)
         lines.append(
@@ -548,7 +533,7 @@ class Report:
                     views = [v["views_after"] - v["views_before"] for v in reviews]
                     held = [v["held_out_after"] - v["held_out_before"] for v in reviews if v["held_out_after"] is not None]
                     lines.append(
-                        f"| {scene} | {METHODS[method]} | {len(reviews)} | {update} | "
+                        f"| {scene} | {METHODS[method][0]} | {len(reviews)} | {update} | "
                         f"{spread([v['step'] for v in reviews], 0)} | {spread(views, 2, signed=True)} | "
                         f"{spread(held, 2, signed=True) if held else 'n/a'} | {sum(not v['kept'] for v in reviews)} |"
                     )
@@ -586,7 +571,7 @@ class Report:
                 seconds = np.mean([[p[self.headline_clock] for p in r["checkpoints"]] for r in runs], axis=0)
                 psnrs = np.array([[p["psnr"] for p in r["checkpoints"]] for r in runs])
                 line = axis.plot(seconds, psnrs.mean(axis=0), marker="o", markersize=3,
-                                 label=f"{METHODS[method]} (n={len(runs)})")[0]
+                                 label=f"{METHODS[method][0]} (n={len(runs)})")[0]
                 if len(runs) > 1:
                     axis.fill_between(seconds, psnrs.min(axis=0), psnrs.max(axis=0), color=line.get_color(), alpha=0.15)
             axis.axvline(self.budget(scene), color="grey", linestyle="--", linewidth=0.8)
