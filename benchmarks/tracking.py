@@ -112,26 +112,15 @@ class Tracking:
         )  # fmt: skip
 
     def train(self, scene: Path) -> Path:
-        runs = self.output / "runs"
-        runs.mkdir(parents=True, exist_ok=True)
-        ns(
-            "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
-            "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
-            "--machine.device-type", "cpu", "--machine.seed", str(self.seed), "--vis",
-            "tensorboard", "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache"),
-            log=runs / "train.log",
-        )
-        return runs / "tracking" / self.method / "run" / "config.yml"
+        data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache")]
+        return train_preset(self.output, self.method, self.iterations, self.seed, "cpu", data)
 
     def click_pixel(self, scene: Path, object_id: int) -> Tuple[float, float]:
         """The pixel centre deepest inside the object's ground-truth mask at the clicked frame."""
         ids = np.load(scene / "ground_truth" / f"{self.click_camera}.npz")["object_ids"][self.click_frame]
-        inside = ids == object_id
-        if not inside.any():
+        if not (ids == object_id).any():
             raise SystemExit(f"object {object_id} is not visible in {self.click_camera} frame {self.click_frame}")
-        depth = ndimage.distance_transform_edt(inside)
-        row, col = np.unravel_index(int(np.argmax(depth)), depth.shape)
-        return col + 0.5, row + 0.5
+        return deepest_pixel(ids == object_id)
 
     @staticmethod
     def held_out_embeddings(scene: Path) -> Tuple[BuiltinSamBackend, List[Embedding], np.ndarray]:
@@ -165,14 +154,39 @@ class Tracking:
             self.frames,
             propagation,
         )
-        scores = {m.time: self.score(m.mask, ids[round(m.time * (self.frames - 1))] == object_id) for m in masks}
-        at_click = [v for t, v in scores.items() if t == click_time]
-        other = [v for t, v in scores.items() if t != click_time]
-        return " | ".join(pct(mean(values, index)) for values in (at_click, other) for index in (0, 1))
+        scores = {m.time: mask_scores(m.mask, ids[round(m.time * (self.frames - 1))] == object_id) for m in masks}
+        return summary_cells(scores, click_time)
 
-    @staticmethod
-    def score(mask: np.ndarray, truth: np.ndarray) -> Tuple[float, float]:
-        return iou(mask, truth), accuracy(mask, truth)
+
+def train_preset(output: Path, method: str, iterations: int, seed: int, device: str, options: List[str]) -> Path:
+    """Train ``method`` with ns-train (``options`` after its own, the dataparser's last) into
+    ``<output>/runs/tracking/<method>/run``, its log in ``<output>/runs/train.log``; its config.yml."""
+    runs = output / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    ns(
+        "ns-train", method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp", "run",
+        "--max-num-iterations", str(iterations), *schedule_options(iterations), "--machine.device-type", device,
+        "--machine.seed", str(seed), "--vis", "tensorboard", *options, log=runs / "train.log",
+    )  # fmt: skip
+    return runs / "tracking" / method / "run" / "config.yml"
+
+
+def deepest_pixel(mask: np.ndarray) -> Tuple[float, float]:
+    """The pixel centre (x, y) deepest inside a mask."""
+    row, col = np.unravel_index(int(np.argmax(ndimage.distance_transform_edt(mask))), mask.shape)
+    return col + 0.5, row + 0.5
+
+
+def mask_scores(mask: np.ndarray, truth: np.ndarray) -> Tuple[float, float]:
+    """IoU and accuracy of a mask against the truth."""
+    return iou(mask, truth), accuracy(mask, truth)
+
+
+def summary_cells(scores: Dict[float, Tuple[float, float]], click_time: float) -> str:
+    """mIoU | Acc. at the clicked time | t-mIoU | t-Acc. at the others (%), from (IoU, accuracy) by time."""
+    at_click = [v for t, v in scores.items() if t == click_time]
+    other = [v for t, v in scores.items() if t != click_time]
+    return " | ".join(pct(mean(values, index)) for values in (at_click, other) for index in (0, 1))
 
 
 def tracking_report(path: Path, table: List[str], per_time: List[str], timing: str) -> None:

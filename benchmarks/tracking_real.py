@@ -18,9 +18,9 @@ import numpy as np
 from PIL import Image
 from scipy import ndimage
 
-from benchmarks.common import REAL, mean, ns, pct, read_mask
-from benchmarks.tracking import PROPAGATIONS, per_time_table, track_click, tracking_report
-from gear_nerfstudio.method_configs.gear_nerf import schedule_options
+from benchmarks.common import REAL, mean, pct, read_mask
+from benchmarks.tracking import (PROPAGATIONS, deepest_pixel, mask_scores, per_time_table, summary_cells, track_click,
+                                 tracking_report, train_preset)
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import cells_per_pixel
 from gear_nerfstudio.tracking.metrics import accuracy, iou
@@ -87,12 +87,6 @@ def shrink(mask: np.ndarray, factor: int) -> np.ndarray:
         return mask
     height, width = mask.shape
     return np.asarray(Image.fromarray(mask).resize((width // factor, height // factor), Image.NEAREST))
-
-
-def deepest_pixel(mask: np.ndarray) -> Tuple[float, float]:
-    """The pixel centre (x, y) deepest inside a mask."""
-    row, col = np.unravel_index(int(np.argmax(ndimage.distance_transform_edt(mask))), mask.shape)
-    return col + 0.5, row + 0.5
 
 
 @dataclasses.dataclass
@@ -175,13 +169,7 @@ class TrackingReal:
                 scores, truth = score(folder, summary, held_out, click_time)
                 write_overlay(self.output / f"overlay_person{index}_{propagation}.png", overlay_frames, folder, summary,
                               truth)  # fmt: skip
-                at_click = [s for t, s in scores.items() if t == click_time]
-                other = [s for t, s in scores.items() if t != click_time]
-                lines.append(
-                    f"| {index} (click {x:.1f}, {y:.1f}) | {propagation} | "
-                    + " | ".join(pct(mean(values, k)) for values in (at_click, other) for k in (0, 1))
-                    + " |"
-                )
+                lines.append(f"| {index} (click {x:.1f}, {y:.1f}) | {propagation} | {summary_cells(scores, click_time)} |")
                 details += per_time_table(f"person {index}, {propagation}", summary["masks"], scores, 3)
         tracked = time.time()
         tracking_report(
@@ -234,21 +222,13 @@ class TrackingReal:
         return "\n".join(rows)
 
     def train(self, capture: Capture) -> Path:
-        runs = self.output / "runs"
-        runs.mkdir(parents=True, exist_ok=True)
         option = "--pipeline.datamanager.train-num-rays-per-batch"
         rays = [] if self.rays_per_batch is None else [option, str(self.rays_per_batch)]
-        ns(
-            "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
-            "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
-            "--machine.device-type", self.device, "--machine.seed", str(self.seed), "--vis", "tensorboard", *rays,
-            *shlex.split(self.train_options),
-            "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
-            *capture.dataparser(self.held_out, self.downscale, self.frame_count),
-            "--cache-dir", str(self.output / "frames"), log=runs / "train.log",
-        )  # fmt: skip
-        return runs / "tracking" / self.method / "run" / "config.yml"
-
+        options = [
+            *rays, *shlex.split(self.train_options), "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
+            *capture.dataparser(self.held_out, self.downscale, self.frame_count), "--cache-dir", str(self.output / "frames"),
+        ]  # fmt: skip
+        return train_preset(self.output, self.method, self.iterations, self.seed, self.device, options)
 
 def refusal(log: Path) -> str:
     """The error that a command wrote to its log: its lines from the one with "error:" on, joined."""
@@ -275,7 +255,7 @@ def score(
     for record in summary["masks"]:
         predicted = np.asarray(Image.open(folder / record["mask"])) > 0
         target = person[round(record["time"] * (frames - 1))]
-        scores[record["time"]] = (iou(predicted, target), accuracy(predicted, target))
+        scores[record["time"]] = mask_scores(predicted, target)
     return scores, person
 
 
