@@ -30,7 +30,7 @@ def subcommands():
         "real-size-costs": RealSizeCosts, "process-accuracy": ProcessAccuracy, "footprint": Footprint,
         "gear-masks": GearMasks,
     }  # fmt: skip
-    return Union[tuple(Annotated[kind, tyro.conf.subcommand(name=name)] for name, kind in named.items())]  # type: ignore
+    return Union[tuple(Annotated[kind, tyro.conf.subcommand(name=n)] for n, kind in named.items())]  # type: ignore
 
 
 def entrypoint() -> None:

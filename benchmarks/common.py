@@ -28,7 +28,8 @@ TRAIN_CHILD = "_train"
 def command_environment() -> Dict[str, str]:
     """os.environ with ``BIN`` first on PATH and this package's folder last on PYTHONPATH (for the child)."""
     paths = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p] + [str(Path(__file__).parents[1])]
-    return {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": os.pathsep.join(paths)}
+    path = f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"
+    return {**os.environ, "PATH": path, "PYTHONPATH": os.pathsep.join(paths)}
 
 
 def ns(*args: str, log: Optional[Path] = None) -> None:
@@ -131,7 +132,7 @@ def machine_description(device: str = "cpu") -> str:
     import torch
 
     cpu = platform.processor() or platform.machine()
-    lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=False).stdout if shutil.which("lscpu") else ""
+    lscpu = subprocess.run(["lscpu"], capture_output=True, text=True).stdout if shutil.which("lscpu") else ""
     cpu = next((line.split(":", 1)[1].strip() for line in lscpu.splitlines() if line.startswith("Model name:")), cpu)
     memory = next((f", {int(line.split()[1]) / 1024**2:.0f} GiB RAM" for line in Path("/proc/meminfo").read_text()
                    .splitlines() if line.startswith("MemTotal:")), "") if Path("/proc/meminfo").is_file() else ""
