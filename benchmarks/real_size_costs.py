@@ -28,6 +28,7 @@ from PIL import Image
 
 from benchmarks.common import REAL, machine_description, run_measured, timed_train
 
+
 @dataclass(frozen=True)
 class Dataset:
     name: str
@@ -51,6 +52,11 @@ DATASETS: Dict[str, Dataset] = {
 }
 
 PANOPTIC = REAL / "panoptic_basketball"
+SAM_IMAGES = 2
+"""Frames per dataset and content encoded for SAM."""
+RENDER_DIVISOR = 16
+"""The held-out render is timed once at 1 / RENDER_DIVISOR of the training size; the first iteration is left out of
+the median; gear updates are off; only N3D trains (with the first method) at every frame count."""
 PANOPTIC_SIZE = (320, 180)
 
 
@@ -190,8 +196,6 @@ def parameter_bytes(method: str, frames: int) -> int:
 
 def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frames: int) -> Dict[str, Any]:
     """One ns-train run (child process with timing hooks), then the render timing (another child)."""
-    from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-
     w, h = dataset.train_size
     scene = write_panoptic_scene(args.output / "scenes" / f"{w}x{h}-{frames}f", dataset.train_size, frames)
     name = f"{dataset.name}-{frames}f"
@@ -200,7 +204,7 @@ def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frame
     command = [
         method, "--output-dir", str(args.output / "runs"), "--experiment-name", name, "--timestamp", "run",
         "--max-num-iterations", str(args.iterations),
-        *(schedule_options(args.iterations) if args.gear_updates else ["--pipeline.gear-updates.enabled", "False"]),
+        "--pipeline.gear-updates.enabled", "False",
         "--steps-per-save", str(args.iterations), "--machine.device-type", "cpu", "--vis", "tensorboard",
         "--steps-per-eval-batch", "0", "--steps-per-eval-image", "0", "--steps-per-eval-all-images", "0",
         "--pipeline.datamanager.sam-cache-dir", str(args.output / "sam-cache"),
@@ -213,7 +217,7 @@ def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frame
     timing, usage = timed_train(command, args.output / "runs" / f"{name}-{method}.json", log_path)
     render_path = args.output / "runs" / f"{name}-{method}-render.json"
     run_measured([sys.executable, "-P", "-m", "benchmarks.real_size_costs", str(run_dir / "config.yml"),
-                  str(render_path), str(args.render_divisor), str(args.render_repeats)], log_path.with_suffix(".render.log"))
+                  str(render_path), str(RENDER_DIVISOR), "1"], log_path.with_suffix(".render.log"))
     render = json.loads(render_path.read_text())
     iterations = timing["iteration_seconds"]
     record = {
@@ -227,8 +231,8 @@ def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frame
         "rss_when_training_starts_bytes": timing["max_rss_before_training_bytes"],
         "setup_seconds": timing["setup_seconds"],
         "first_iteration_seconds": iterations[0],
-        "median_iteration_seconds": statistics.median(iterations[args.warmup :]),
-        "timed_iterations": len(iterations[args.warmup :]),
+        "median_iteration_seconds": statistics.median(iterations[1:]),
+        "timed_iterations": len(iterations[1:]),
         "gear_updates": timing["gear_updates"],
         "render": render,
         "parameter_bytes": parameter_bytes(method, frames),
@@ -444,22 +448,12 @@ class RealSizeCosts:
     """One part ('sam': the SAM cache alone, on the frames of an earlier disk run); the other parts' records stay."""
     sam_cache_module: Optional[Path] = None
     """Measure the SAM cache of this feature_cache.py (e.g. an earlier version from git) instead of the package's."""
-    sam_images: int = 2
-    """Frames per dataset and content encoded for SAM."""
     datasets: Tuple[Literal["Technicolor", "N3D", "Immersive"], ...] = ("Technicolor", "N3D", "Immersive")
     methods: Tuple[str, ...] = ("gear-nerf", "gear-nerf-baseline")
     iterations: int = 4
     """Iterations per run."""
-    gear_updates: bool = False
-    """Run gear updates, with the schedule scaled to the iterations (needs --iterations >= 13)."""
-    warmup: int = 1
-    """First iterations left out of the median."""
     frame_counts: Tuple[int, ...] = (3, 8)
     """Frames of the training scenes (the panoptic capture has 20)."""
-    frame_check: Tuple[str, ...] = ("N3D",)
-    """Datasets trained (with the first method) at every frame count; the others at the first."""
-    render_divisor: int = 16
-    render_repeats: int = 1
 
     def main(self) -> None:
         records_path = self.output / "records.json"
@@ -481,8 +475,9 @@ class RealSizeCosts:
                         frames = next(r for r in records["disk"] if (r["dataset"], r["content"]) == (name, source))
                         frames = {k: v for k, v in frames.items() if not k.startswith("sam_")}
                     folder = content_folder(self.output, dataset, source) / "sam-cache"
-                    sam = measure_sam(training_frames(self.output, dataset, source), folder, module, self.sam_images)
-                    measured.append({**frames, **sam, "sam_cache_module": str(self.sam_cache_module or module.__name__)})
+                    sam = measure_sam(training_frames(self.output, dataset, source), folder, module, SAM_IMAGES)
+                    source_module = str(self.sam_cache_module or module.__name__)
+                    measured.append({**frames, **sam, "sam_cache_module": source_module})
                     print(f"[real_size_costs] disk: {measured[-1]}", flush=True)
             keys = {(r["dataset"], r["content"], r["sam_format"]) for r in measured}
             records["disk"] = [r for r in records["disk"] if (r["dataset"], r["content"], r["sam_format"]) not in keys]
@@ -505,7 +500,7 @@ class RealSizeCosts:
                 (name, method, frames)
                 for method in self.methods
                 for name in self.datasets
-                for frames in (self.frame_counts if name in self.frame_check and method == self.methods[0]
+                for frames in (self.frame_counts if name == "N3D" and method == self.methods[0]
                                else self.frame_counts[:1])
             ]
             for name, method, frames in runs:

@@ -32,7 +32,6 @@ class Tracking:
     """Train (or load) a run on a synthetic scene and score tracking from one click per object."""
 
     output: Path = Path("outputs/tracking")
-    method: str = "gear-nerf-small"
     iterations: int = 1500
     seed: int = 42
     """Training seed (`--machine.seed`; nerfstudio's default is 42)."""
@@ -113,7 +112,7 @@ class Tracking:
 
     def train(self, scene: Path) -> Path:
         data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache")]
-        return train_preset(self.output, self.method, self.iterations, self.seed, "cpu", data)
+        return train_preset(self.output, self.iterations, self.seed, "cpu", data)
 
     def click_pixel(self, scene: Path, object_id: int) -> Tuple[float, float]:
         """The pixel centre deepest inside the object's ground-truth mask at the clicked frame."""
@@ -158,9 +157,10 @@ class Tracking:
         return summary_cells(scores, click_time)
 
 
-def train_preset(output: Path, method: str, iterations: int, seed: int, device: str, options: List[str]) -> Path:
-    """Train ``method`` with ns-train (``options`` after its own, the dataparser's last) into
-    ``<output>/runs/tracking/<method>/run``, its log in ``<output>/runs/train.log``; its config.yml."""
+def train_preset(output: Path, iterations: int, seed: int, device: str, options: List[str]) -> Path:
+    """Train gear-nerf-small with ns-train (``options`` after its own, the dataparser's last) into
+    ``<output>/runs/tracking/gear-nerf-small/run``, its log in ``<output>/runs/train.log``; its config.yml."""
+    method = "gear-nerf-small"
     runs = output / "runs"
     runs.mkdir(parents=True, exist_ok=True)
     ns(

@@ -95,7 +95,6 @@ class TrackingReal:
 
     output: Path = Path("outputs/tracking_real")
     capture: Path = CAPTURE
-    method: str = "gear-nerf-small"
     iterations: int = 3000
     seed: int = 42
     """Training seed (`--machine.seed`; nerfstudio's default is 42)."""
@@ -113,8 +112,6 @@ class TrackingReal:
     """Train on the first this many frames (the dataparser's --frame-count); all by default."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Where `ns-train` trains (`--machine.device-type`); tracking uses the GPU when there is one."""
-    rays_per_batch: Optional[int] = None
-    """Training rays per iteration; the preset's by default."""
     min_views: Optional[int] = None
     """`ns-gear-track --min-views`; its default when None."""
     train_options: str = ""
@@ -222,13 +219,13 @@ class TrackingReal:
         return "\n".join(rows)
 
     def train(self, capture: Capture) -> Path:
-        option = "--pipeline.datamanager.train-num-rays-per-batch"
-        rays = [] if self.rays_per_batch is None else [option, str(self.rays_per_batch)]
         options = [
-            *rays, *shlex.split(self.train_options), "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
-            *capture.dataparser(self.held_out, self.downscale, self.frame_count), "--cache-dir", str(self.output / "frames"),
+            *shlex.split(self.train_options), "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
+            *capture.dataparser(self.held_out, self.downscale, self.frame_count),
+            "--cache-dir", str(self.output / "frames"),
         ]  # fmt: skip
-        return train_preset(self.output, self.method, self.iterations, self.seed, self.device, options)
+        return train_preset(self.output, self.iterations, self.seed, self.device, options)
+
 
 def refusal(log: Path) -> str:
     """The error that a command wrote to its log: its lines from the one with "error:" on, joined."""
