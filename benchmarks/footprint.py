@@ -31,23 +31,15 @@ class Footprint:
     """Train each run of ``runs`` with ns-train and measure what it costs."""
 
     output: Path = Path("outputs/footprint")
-    iterations: int = 600
-    """Iterations on the static and mixed scenes (the gear-update schedule is scaled to them)."""
-    long_iterations: int = 300
-    """Iterations on the long video (enough to cycle through the datamanager's image subsets)."""
-    long_frames: int = 300
-    long_cameras: int = 20
 
     def runs(self) -> List[Run]:
+        """600 iterations on the static and mixed scenes (the gear-update schedule scaled to them), 300 on the long
+        video (enough to cycle through the datamanager's image subsets)."""
         short = dict(dataset="n3d", width=64, height=48, frames=6, cameras=6)
-        long = SyntheticSpec(dataset="n3d", width=32, height=24, frames=self.long_frames, cameras=self.long_cameras)
-        runs = []
-        for motion in ("static", "mixed"):
-            for method in ("gear-nerf-small", "gear-nerf-baseline"):
-                runs.append(Run(f"{motion}", method, SyntheticSpec(motion=motion, **short), self.iterations))
-        runs.append(Run(f"long ({self.long_cameras} cameras x {self.long_frames} frames)", "gear-nerf-small", long,
-                        self.long_iterations))
-        return runs
+        runs = [Run(motion, method, SyntheticSpec(motion=motion, **short), 600)
+                for motion in ("static", "mixed") for method in ("gear-nerf-small", "gear-nerf-baseline")]
+        long = SyntheticSpec(dataset="n3d", width=32, height=24, frames=300, cameras=20)
+        return runs + [Run("long (20 cameras x 300 frames)", "gear-nerf-small", long, 300)]
 
     def main(self) -> None:
         rows = [
