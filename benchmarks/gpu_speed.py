@@ -25,7 +25,7 @@ from nerfstudio.engine.callbacks import TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer
 from torch import Tensor
 
-from benchmarks.common import machine_description
+from benchmarks.common import machine_description, timed
 from benchmarks.render_speed import set_render_counts
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gears.updater import GearUpdater
@@ -87,11 +87,7 @@ class Run:
 
     def timed(self, function: Callable[[], Any]) -> float:
         """Seconds of ``function()``, with the device synchronised at both ends."""
-        self.synchronize()
-        start = time.perf_counter()
-        function()
-        self.synchronize()
-        return time.perf_counter() - start
+        return timed(function, 1, self.synchronize)[0]
 
     def gear_updates(self, count: int) -> List[Dict[str, float]]:
         """Run ``count`` gear updates with the pipeline's own updater; their durations and statistics."""

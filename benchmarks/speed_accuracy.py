@@ -16,14 +16,13 @@ import re
 import shlex
 import shutil
 import sys
-import time
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 import tyro
 
-from benchmarks.common import REAL, contact_sheet, machine_description, timed_train
+from benchmarks.common import REAL, contact_sheet, machine_description, timed, timed_train
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 
 Clock = Literal["seconds", "cpu_seconds"]
@@ -682,13 +681,8 @@ def evaluate_checkpoints(
         render_seconds, samples, pixels = 0.0, 0.0, 0
         sums = {key: 0.0 for key in SUMS}
         for index in frames:
-            if cuda:
-                torch.cuda.synchronize()
-            started = time.perf_counter()
-            outputs = render(index)
-            if cuda:
-                torch.cuda.synchronize()
-            render_seconds += time.perf_counter() - started
+            seconds, outputs = timed(lambda: render(index), 1, torch.cuda.synchronize if cuda else lambda: None)
+            render_seconds += seconds
             image_metrics, _ = model.get_image_metrics_and_images(outputs, dataset[index])
             for name in metrics:
                 if name in image_metrics:
