@@ -504,7 +504,7 @@ class RealSizeCosts:
                                else self.frame_counts[:1])
             ]
             for name, method, frames in runs:
-                record = train_and_render(args, DATASETS[name], method, frames)
+                record = train_and_render(self, DATASETS[name], method, frames)
                 records["train"] = [r for r in records["train"] if (r["dataset"], r["method"], r["frames"]) != (name, method, frames)]
                 records["train"] = sorted(records["train"] + [record], key=lambda r: (
                     r["method"], list(DATASETS).index(r["dataset"]), r["frames"]))
