@@ -1,41 +1,25 @@
-"""What a scene costs: parameters in use, checkpoint size and peak training memory (issue "model only
-what a scene requires").
-
-Trains, with the real `ns-train`, gear-nerf-small and the plain K-Planes baseline (one gear with the full
-time axis, `gear-nerf-baseline`) on a fully static and on a mixed synthetic scene, and gear-nerf-small on
-a long low-resolution video (20 cameras, 300 frames). For each run:
-
-- parameters: all of the field, and those in use (`GearField.parameters_in_use`: the planes of gears
-  that never had a training sample get no gradient and no optimizer step);
-- the gear levels that were used;
-- the size of the final checkpoint (model and optimizer state: Adam keeps no state for unused planes);
-- the peak resident memory (RSS) of the training process, from `os.wait4` on it.
-
-    .venv/bin/python benchmarks/footprint.py --output outputs/footprint
-
-Prints a markdown table and writes it to `<output>/footprint.md`.
-"""
+"""What a scene costs: parameters (all, and in use: ``GearField.parameters_in_use``), gear levels used, checkpoint
+size and peak RSS of the training process, for gear-nerf-small and the one-gear preset on a static and a mixed
+synthetic scene, and gear-nerf-small on a long low-resolution video. Writes ``<output>/footprint.md``."""
 
 from __future__ import annotations
 
 import dataclasses
-import os
-import subprocess
 import time
 from pathlib import Path
 from typing import List, Tuple
 
 import torch
-import tyro
 
-from environment import BIN, command_environment
+from benchmarks.common import BIN, run_measured
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 
-
 @dataclasses.dataclass
 class Run:
+    """One training run: a label, the preset, the synthetic scene, iterations."""
+
     name: str
     method: str
     spec: SyntheticSpec
@@ -43,25 +27,19 @@ class Run:
 
 
 @dataclasses.dataclass
-class FootprintBenchmark:
+class Footprint:
+    """Train each run of ``runs`` with ns-train and measure what it costs."""
+
     output: Path = Path("outputs/footprint")
-    iterations: int = 600
-    """Iterations on the static and mixed scenes (the gear-update schedule is scaled to them)."""
-    long_iterations: int = 300
-    """Iterations on the long video (enough to cycle through the datamanager's image subsets)."""
-    long_frames: int = 300
-    long_cameras: int = 20
 
     def runs(self) -> List[Run]:
+        """600 iterations on the static and mixed scenes (the gear-update schedule scaled to them), 300 on the long
+        video (enough to cycle through the datamanager's image subsets)."""
         short = dict(dataset="n3d", width=64, height=48, frames=6, cameras=6)
-        long = SyntheticSpec(dataset="n3d", width=32, height=24, frames=self.long_frames, cameras=self.long_cameras)
-        runs = []
-        for motion in ("static", "mixed"):
-            for method in ("gear-nerf-small", "gear-nerf-baseline"):
-                runs.append(Run(f"{motion}", method, SyntheticSpec(motion=motion, **short), self.iterations))
-        runs.append(Run(f"long ({self.long_cameras} cameras x {self.long_frames} frames)", "gear-nerf-small", long,
-                        self.long_iterations))
-        return runs
+        runs = [Run(motion, method, SyntheticSpec(motion=motion, **short), 600)
+                for motion in ("static", "mixed") for method in ("gear-nerf-small", "gear-nerf-baseline")]
+        long = SyntheticSpec(dataset="n3d", width=32, height=24, frames=300, cameras=20)
+        return runs + [Run("long (20 cameras x 300 frames)", "gear-nerf-small", long, 300)]
 
     def main(self) -> None:
         rows = [
@@ -95,12 +73,8 @@ class FootprintBenchmark:
             "--cache-dir", str(self.output / "cache"),
         ]
         start = time.perf_counter()
-        with open(runs / f"{key}-{run.method}.log", "w") as log:
-            process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=command_environment())
-            _, status, usage = os.wait4(process.pid, 0)
+        usage = run_measured(command, runs / f"{key}-{run.method}.log")
         seconds = time.perf_counter() - start
-        if os.waitstatus_to_exitcode(status) != 0:
-            raise RuntimeError(f"{' '.join(command)} failed; see {log.name}")
         folder = runs / key / run.method / "run"
         checkpoint = sorted((folder / "nerfstudio_models").glob("step-*.ckpt"))[-1]
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)["pipeline"]
@@ -115,6 +89,3 @@ class FootprintBenchmark:
         # ru_maxrss is in KiB on Linux.
         return total, total - unused_planes, gears, checkpoint.stat().st_size, usage.ru_maxrss * 1024, seconds
 
-
-if __name__ == "__main__":
-    tyro.cli(FootprintBenchmark).main()

@@ -6,13 +6,15 @@
 #                                      here: the missing packages, as Python 3.12 / x86-64 files, into
 #                                      .device_site/site.tar.xz (xz, and without the parts that nothing here runs:
 #                                      a call carries 64 MiB with the working tree), and the real capture with the
-#                                      masks tracking_real.py needs into .device_site/real; with FRAMES, only the
+#                                      masks tracking-real needs into .device_site/real; with FRAMES, only the
 #                                      videos' first FRAMES frames (and their masks), to fit the call with a larger
 #                                      working tree
 #   bash benchmarks/gpu_env.sh setup   there (carry .device_site): unpack into /tmp/site, install this checkout
 #                                      into it (so that nerfstudio finds the plugin's entry points), and put the
-#                                      capture, if packed, where the benchmarks look (../shared/data/real); then
-#                                      `export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH`
+#                                      capture, if packed, where the benchmarks look (../shared/data/real), and
+#                                      this checkout's benchmarks into /tmp/bench; then `export
+#                                      PYTHONPATH=/tmp/site:/tmp/bench PATH=/tmp/site/bin:$PATH` and run
+#                                      `python3 -P -m benchmarks ...` (-P: not the checkout's gear_nerfstudio folder)
 #
 # The packages are those nerfstudio 1.1.5 imports when it trains and evaluates gear-nerf, at the versions of
 # constraints.txt, less what the device image already has; fpsample is 0.3.3
@@ -37,7 +39,7 @@ case "${1:-}" in
       .device_site/site/viser/_icons .device_site/site/rawpy .device_site/site/rawpy.libs
     tar cf - -C .device_site site | xz -9 -T2 >.device_site/site.tar.xz && rm -rf .device_site/site
     cp -r ../shared/data/real/panoptic_basketball_video .device_site/real/
-    # The masks of the cameras that tracking_real.py clicks in and tracks into (cam13, cam20).
+    # The masks of the cameras that tracking-real clicks in and tracks into (cam13, cam20).
     mkdir -p .device_site/real/panoptic_basketball_video_masks
     cp -r ../shared/data/real/panoptic_basketball_video_masks/cam{13,20} .device_site/real/panoptic_basketball_video_masks/
     if [ -n "${2:-}" ]; then
@@ -63,6 +65,7 @@ case "${1:-}" in
     printf '#!/bin/sh\nexec python3 -P -m nerfstudio.scripts.train "$@"\n' >/tmp/site/bin/ns-train
     printf '#!/bin/sh\nexec python3 -P -m gear_nerfstudio.tracking.cli "$@"\n' >/tmp/site/bin/ns-gear-track
     chmod +x /tmp/site/bin/ns-train /tmp/site/bin/ns-gear-track
+    mkdir -p /tmp/bench && ln -sfn "$PWD/benchmarks" /tmp/bench/benchmarks
     if [ -d .device_site/real ]; then mkdir -p ../shared/data/real && cp -r .device_site/real/* ../shared/data/real/; fi
     ;;
   *)

@@ -1,70 +1,38 @@
-"""GPU speed at Neural 3D Video size: ``gear-nerf`` against the one-gear baseline (issue 14).
-
-A synthetic scene (``gear_nerfstudio.tools.synthetic``, Technicolor layout so that no video decoder is needed) with
-N3D's camera count and training resolution (21 cameras, 1352 x 1014: downscale 2 of 2704 x 2028) is trained with
-nerfstudio's own objects: the method preset's ``TrainerConfig.setup()`` builds the ``Trainer``, ``Trainer.setup()``
-the pipeline, optimisers and training callbacks, and every iteration runs as ``Trainer.train`` runs it (callbacks
-before, ``Trainer.train_iteration``, callbacks after), without the viewer, writers, evaluation or checkpoints.
-
-Per method:
-
-1. ``--pretrain`` iterations (not timed), so that the loss maps of the gear updates see a partly trained field.
-2. Gear-NeRF only: ``--updates`` gear updates (Sec 4.3), run by the pipeline's own ``GearUpdater`` and timed one by
-   one. They upshift regions of the scene; without them every sample stays in gear 1 and Gear-NeRF costs what
-   the one-gear model costs. The gear shares they leave (visible surface of their loss-map views) are reported.
-3. Host syncs per training iteration: ``--sync-iterations`` iterations under
-   ``torch.cuda.set_sync_debug_mode("warn")``, counted per source line (CUDA only).
-4. ``--warmup`` iterations, then ``--windows`` timing windows of ``--window`` iterations each, with
-   ``torch.cuda.synchronize`` at the edges of each window only; iteration time is window time / window length
-   (median, quartiles and range over windows); rays per second follow from the preset's batch. Peak GPU memory
-   (``torch.cuda.max_memory_allocated``) over these iterations.
-5. Render: ``--renders`` full frames of the held-out camera (``model.get_outputs_for_camera``, the viewer's and
-   ``ns-render``'s path) after one warm-up render, with their peak memory.
-6. Variants on the same trained model (issue 25), each against the row above: renders at other chunk sizes
-   (``--render-chunks``, field samples per chunk) and render sample counts (``--render-samples 32,16,12``: the
-   proposal iterations' counts, then n; at chunks of ``--samples-chunk``), with each render's PSNR against the
-   row's render and its peak memory; training windows at other rays per batch (``--batches``), and with and
-   without TF32 matrix products in turn (``--tf32``); and a ``torch.profiler`` pass over ``--profile`` iterations
-   (GPU busy time, host time and kernel launches per iteration; the table of kernels is written beside the
-   results). Renders can also be profiled (``--render-profile``, one frame), run under bfloat16 autocast
-   (``--render-bf16``) or with the density functions through ``torch.compile`` (``--render-compile``).
-7. ``--render-stages``: seconds per frame in each stage of the render path (proposal sampler, gear levels, split
-   sampler, field density and its plane features, colour), each stage synchronised at both ends.
-
-    python benchmarks/gpu_speed.py --device cuda --scene outputs/gpu_speed/scene --output outputs/gpu_speed \\
-        --results benchmarks/results
-"""
+"""GPU speed at Neural 3D Video size (21 cameras at 1352 x 1014, synthetic, Technicolor layout): ``gear-nerf``
+against its one-gear twin, trained with nerfstudio's own Trainer without viewer, writers or checkpoints. Per method:
+pre-training, timed gear updates, host syncs per iteration, windows of timed iterations (ms, rays / s, peak GiB),
+full-frame renders, and variants on the same model (chunks, render sample counts, rays per batch, TF32, bfloat16,
+torch.compile, profiler, render stages). ``benchmarks/results/gpu_speed.md`` says what each measures."""
 
 from __future__ import annotations
 
-import argparse
 import collections
 import contextlib
 import copy
+import dataclasses
 import datetime
 import functools
-import platform
+import shlex
 import statistics
-import subprocess
 import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple
 
 import torch
-from torch import Tensor
-
 from nerfstudio.engine.callbacks import TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer
+from torch import Tensor
 
+from benchmarks.common import machine_description, timed
+from benchmarks.render_speed import set_render_counts
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_baseline
 from gear_nerfstudio.model import image_render
 from gear_nerfstudio.model.gear_model import evaluating, psnr
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
-from render_speed import set_render_counts
 
 METHODS = {"gear-nerf": gear_nerf, "gear-nerf-one-gear": gear_nerf, "gear-nerf-baseline": gear_nerf_baseline}
 """``gear-nerf-one-gear``: the gear-nerf preset with N_gear = 1 (K-Planes with the full time axis and uniform
@@ -77,7 +45,7 @@ HELD_OUT_CAMERA = "10"
 class Run:
     """One method: its Trainer (set up without viewer, writers or checkpoints) and its measurements."""
 
-    def __init__(self, method: str, args: argparse.Namespace) -> None:
+    def __init__(self, method: str, args: "GpuSpeed") -> None:
         config = copy.deepcopy(METHODS[method].config)
         config.machine.device_type = args.device
         config.machine.seed = args.seed
@@ -119,11 +87,7 @@ class Run:
 
     def timed(self, function: Callable[[], Any]) -> float:
         """Seconds of ``function()``, with the device synchronised at both ends."""
-        self.synchronize()
-        start = time.perf_counter()
-        function()
-        self.synchronize()
-        return time.perf_counter() - start
+        return timed(function, 1, self.synchronize)[0]
 
     def gear_updates(self, count: int) -> List[Dict[str, float]]:
         """Run ``count`` gear updates with the pipeline's own updater; their durations and statistics."""
@@ -261,7 +225,7 @@ def compiled_densities(model) -> Iterator[None]:
         yield
 
 
-def variants(run: Run, args: argparse.Namespace, reference: Tensor) -> List[Dict[str, Any]]:
+def variants(run: Run, args: "GpuSpeed", reference: Tensor) -> List[Dict[str, Any]]:
     """The variants of step 6 on ``run``'s trained model, each restored afterwards: the renders first, while the
     model is the one that rendered ``reference``."""
     rows: List[Dict[str, Any]] = []
@@ -322,7 +286,7 @@ def variants(run: Run, args: argparse.Namespace, reference: Tensor) -> List[Dict
     return rows
 
 
-def measure(method: str, args: argparse.Namespace) -> Dict[str, Any]:
+def measure(method: str, args: "GpuSpeed") -> Dict[str, Any]:
     run = Run(method, args)
     for _ in range(args.pretrain):
         run.iteration()
@@ -368,13 +332,13 @@ def gib(value: Any) -> str:
     return "not measured (CPU)" if value is None else f"{value / 2**30:.2f}"
 
 
-def markdown(results: List[Dict[str, Any]], args: argparse.Namespace, command: str) -> str:
+def markdown(results: List[Dict[str, Any]], args: "GpuSpeed", command: str) -> str:
     lines = [
         "# GPU speed at Neural 3D Video size: gear-nerf and the one-gear baseline",
         "",
         f"Command: `{command}`",
         "",
-        f"Machine: {machine(args.device)}. Date: {datetime.date.today().isoformat()}.",
+        f"Machine: {machine_description(args.device)}. Date: {datetime.date.today().isoformat()}.",
         "",
         f"Scene: synthetic (`gear_nerfstudio.tools.synthetic`, mixed motion), Technicolor layout, {args.rows} x "
         f"{args.cols} = {args.rows * args.cols} cameras at {args.width} x {args.height} (N3D's camera count and its "
@@ -464,67 +428,59 @@ def markdown(results: List[Dict[str, Any]], args: argparse.Namespace, command: s
     return "\n".join(lines) + "\n"
 
 
-def machine(device: str) -> str:
-    if device != "cuda":
-        return f"{platform.processor() or platform.machine()}, CPU, torch {torch.__version__}"
-    query = ["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"]
-    smi = subprocess.run(query, capture_output=True, text=True, check=False).stdout.strip()
-    return f"{smi} (nvidia-smi), torch {torch.__version__} (CUDA {torch.version.cuda})"
+@dataclasses.dataclass
+class GpuSpeed:
+    """Train both methods at N3D size and time iterations, gear updates and renders; write ``gpu_speed.md``."""
 
+    methods: Tuple[Literal["gear-nerf", "gear-nerf-one-gear", "gear-nerf-baseline"], ...] = tuple(METHODS)  # type: ignore
+    device: Literal["cuda", "cpu"] = "cuda"
+    scene: Path = Path("outputs/gpu_speed/scene")
+    """Synthetic scene folder, written if missing."""
+    width: int = 1352
+    height: int = 1014
+    rows: int = 3
+    cols: int = 7
+    frames: int = 6
+    model_frames: int = 300
+    """The model's num_frames (planes' rows); 0: the scene's."""
+    pretrain: int = 300
+    updates: int = 2
+    sync_iterations: int = 5
+    warmup: int = 20
+    window: int = 10
+    windows: int = 20
+    renders: int = 3
+    seed: int = 42
+    batches: Tuple[int, ...] = ()
+    """Also train at these rays per batch."""
+    tf32: bool = False
+    """Also train with and without TF32 products in turn."""
+    render_chunks: Tuple[int, ...] = ()
+    """Also render at these chunk sizes (field samples)."""
+    render_samples: Tuple[str, ...] = ()
+    """Also render at these sample counts, "P1,P2,N" each."""
+    samples_chunk: Optional[int] = None
+    """Chunk size of the --render-samples renders."""
+    profile: int = 0
+    """Profile this many training iterations (CUDA)."""
+    render_profile: bool = False
+    render_bf16: bool = False
+    render_compile: bool = False
+    render_stages: bool = False
+    output: Path = Path("outputs/gpu_speed")
+    results: Optional[Path] = None
+    """Also write gpu_speed.md here."""
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
-    parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"])
-    parser.add_argument("--scene", type=Path, default=Path("outputs/gpu_speed/scene"), help="written if missing")
-    parser.add_argument("--width", type=int, default=1352)
-    parser.add_argument("--height", type=int, default=1014)
-    parser.add_argument("--rows", type=int, default=3)
-    parser.add_argument("--cols", type=int, default=7)
-    parser.add_argument("--frames", type=int, default=6)
-    parser.add_argument("--model-frames", type=int, default=300, help="model num_frames (planes' rows); 0: scene's")
-    parser.add_argument("--pretrain", type=int, default=300)
-    parser.add_argument("--updates", type=int, default=2)
-    parser.add_argument("--sync-iterations", type=int, default=5)
-    parser.add_argument("--warmup", type=int, default=20)
-    parser.add_argument("--window", type=int, default=10)
-    parser.add_argument("--windows", type=int, default=20)
-    parser.add_argument("--renders", type=int, default=3)
-    parser.add_argument("--seed", type=int, default=42)
-    parser.add_argument("--batches", type=int, nargs="*", default=[], help="also train at these rays per batch")
-    parser.add_argument("--tf32", action="store_true", help="also train with and without TF32 products in turn")
-    parser.add_argument("--render-chunks", type=int, nargs="*", default=[], help="also render at these chunk sizes")
-    parser.add_argument("--render-samples", nargs="*", default=[], metavar="P1,P2,N", help="also render at these counts")
-    parser.add_argument("--samples-chunk", type=int, default=None, help="chunk size of the --render-samples renders")
-    parser.add_argument("--profile", type=int, default=0, help="profile this many training iterations (CUDA)")
-    parser.add_argument("--render-profile", action="store_true", help="also profile one render (CUDA)")
-    parser.add_argument("--render-bf16", action="store_true", help="also render under bfloat16 autocast")
-    parser.add_argument("--render-compile", action="store_true", help="also render with compiled density functions")
-    parser.add_argument("--render-stages", action="store_true", help="also time the render path's stages")
-    parser.add_argument("--output", type=Path, default=Path("outputs/gpu_speed"))
-    parser.add_argument("--results", type=Path, default=None, help="also write gpu_speed.md here")
-    args = parser.parse_args()
-    command = "python " + subprocess.list2cmdline(sys.argv)
-
-    if not (args.scene / "cameras_parameters.txt").is_file():
-        spec = SyntheticSpec(
-            dataset="technicolor",
-            width=args.width,
-            height=args.height,
-            frames=args.frames,
-            rows=args.rows,
-            cols=args.cols,
-        )
-        write_synthetic_scene(args.scene, spec)
-    results = []
-    for method in args.methods:
-        results.append(measure(method, args))
-        print(markdown(results, args, command), flush=True)
-    text = markdown(results, args, command)
-    for folder in [args.output] + ([args.results] if args.results else []):
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / "gpu_speed.md").write_text(text)
-
-
-if __name__ == "__main__":
-    main()
+    def main(self) -> None:
+        command = "python -m benchmarks " + shlex.join(sys.argv[1:])
+        if not (self.scene / "cameras_parameters.txt").is_file():
+            spec = SyntheticSpec(dataset="technicolor", width=self.width, height=self.height, frames=self.frames,
+                                 rows=self.rows, cols=self.cols)  # fmt: skip
+            write_synthetic_scene(self.scene, spec)
+        results = []
+        for method in self.methods:
+            results.append(measure(method, self))
+            print(markdown(results, self, command), flush=True)
+        for folder in [self.output] + ([self.results] if self.results else []):
+            folder.mkdir(parents=True, exist_ok=True)
+            (folder / "gpu_speed.md").write_text(markdown(results, self, command))

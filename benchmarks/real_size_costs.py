@@ -1,76 +1,32 @@
-"""What a scene costs at the datasets' real sizes (issue 14, item 4): disk of the frame and SAM caches, peak host
-memory and time per iteration while training, render speed.
-
-    nice -n 10 .venv/bin/python benchmarks/real_size_costs.py --results benchmarks/results
-    nice -n 10 .venv/bin/python benchmarks/real_size_costs.py --only disk --results benchmarks/results  # disk alone
-    nice -n 10 .venv/bin/python benchmarks/real_size_costs.py --only sam --results benchmarks/results   # SAM cache alone
-    git show HEAD:gear_nerfstudio/sam/feature_cache.py > /tmp/feature_cache_head.py   # an earlier format's row:
-    nice -n 10 .venv/bin/python benchmarks/real_size_costs.py --only sam --sam-cache-module /tmp/feature_cache_head.py
-
-The real sizes (``DATASETS``): Technicolor 16 cameras x 50 frames of 2048x1088 PNG; N3D 21 cameras x 300 frames of
-2704x2028 video trained at downscale 2 (1352x1014); Immersive 46 cameras x 50 frames of 2560x1920 fisheye video
-trained at downscale 2 (1280x960). The only real captures on this machine are small (``../shared/data/real``:
-panoptic_basketball, 16 cameras x 20 frames of 320x180 PNG; n3d_flame_steak_frame0, 21 cameras x 1 frame of 672x504
-video), so every measurement runs on real content upscaled (bicubic) to the real size.
-
-Disk (``--only disk``), per dataset and content:
-* Frame cache: the dataset's files at their distributed size (PNG frames, or an H.264 video written by the project's
-  ``write_video``), put through the plugin's own ``cache_image_frames`` / ``cache_video_frames`` at the training
-  size; measured: the bytes the cache folder takes on disk (``du``), per frame, and whether the frames are read in
-  place. Upscaled content has less fine detail than a real capture at that size, so it likely compresses better:
-  the table also gives the uncompressed RGB size of a frame.
-* SAM cache: ``SamFeatureCache.precompute`` with the built-in backend on cached frames at the training size;
-  measured: the bytes of each file on disk, and its format (the file's leading magic bytes), which names the rows.
-* Scene totals are computed: bytes per frame (or per file) x cameras x frames (the held-out camera's frames are
-  cached and encoded too).
-
-Training (``--only train``), per dataset size: the panoptic capture in the Technicolor layout, its frames upscaled to
-the dataset's training size (intrinsics scaled to match), all 16 cameras, a few frames (``--frame-counts``; every
-count for ``--frame-check`` datasets, the first for the others), trained by the real ``ns-train`` on the CPU for
-``--iterations`` iterations (gear updates off unless ``--gear-updates``: a preset iteration takes about a minute on
-a loaded 2-CPU machine, and an update needs at least 13 iterations). Measured: peak RSS of the training process
-(``ru_maxrss`` from ``os.wait4``; also its value when ``Trainer.train`` starts, i.e. after loading, caching and SAM
-encoding); each iteration's time (``Trainer.train_iteration``: batch, forward, backward, optimizer; the first one
-also loads the datamanager's 40 images); then, in a second process from the last checkpoint, the render time of
-the held-out camera's (10) first frame at 1/``--render-divisor`` of the training size. Computed: the model's
-parameter bytes at the real frame count, from the parameter count of the preset's model built for that many frames.
-
-Records accumulate in ``<output>/records.json`` (disk rows per SAM cache format, training rows per dataset, method
-and frames); every invocation rewrites ``<output>/real_size_costs.md`` (and ``<results>/real_size_costs.md``) from
-them, after every run.
-"""
+"""What a scene costs at the datasets' real sizes (``DATASETS``), on real content upscaled to them: disk of the frame
+and SAM caches (``--only disk``, ``sam``), and peak host memory, seconds per iteration and render speed of short
+ns-train runs on the CPU (``--only train``). Records accumulate in ``<output>/records.json``; every run rewrites
+``real_size_costs.md`` from them (its notes say what each column measures)."""
 
 from __future__ import annotations
 
-import argparse
 import copy
+import dataclasses
 import datetime
 import importlib
 import importlib.util
 import json
 import os
-import resource
 import shlex
 import shutil
 import statistics
-import subprocess
 import sys
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 from PIL import Image
 
-from environment import command_environment
-from speed_accuracy import REAL, machine_description
-
-TRAIN_CHILD = "_train-child"
-RENDER_CHILD = "_render-child"
-"""First argument of the child processes that train (timing hooks) and render (from the checkpoint)."""
+from benchmarks.common import REAL, machine_description, run_measured, timed_train
 
 
 @dataclass(frozen=True)
@@ -96,6 +52,11 @@ DATASETS: Dict[str, Dataset] = {
 }
 
 PANOPTIC = REAL / "panoptic_basketball"
+SAM_IMAGES = 2
+"""Frames per dataset and content encoded for SAM."""
+RENDER_DIVISOR = 16
+"""The held-out render is timed once at 1 / RENDER_DIVISOR of the training size; the first iteration is left out of
+the median; gear updates are off; only N3D trains (with the first method) at every frame count."""
 PANOPTIC_SIZE = (320, 180)
 
 
@@ -233,10 +194,8 @@ def parameter_bytes(method: str, frames: int) -> int:
     return sum(p.numel() * p.element_size() for p in model.parameters())
 
 
-def train_and_render(args: argparse.Namespace, dataset: Dataset, method: str, frames: int) -> Dict[str, Any]:
+def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frames: int) -> Dict[str, Any]:
     """One ns-train run (child process with timing hooks), then the render timing (another child)."""
-    from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-
     w, h = dataset.train_size
     scene = write_panoptic_scene(args.output / "scenes" / f"{w}x{h}-{frames}f", dataset.train_size, frames)
     name = f"{dataset.name}-{frames}f"
@@ -245,7 +204,7 @@ def train_and_render(args: argparse.Namespace, dataset: Dataset, method: str, fr
     command = [
         method, "--output-dir", str(args.output / "runs"), "--experiment-name", name, "--timestamp", "run",
         "--max-num-iterations", str(args.iterations),
-        *(schedule_options(args.iterations) if args.gear_updates else ["--pipeline.gear-updates.enabled", "False"]),
+        "--pipeline.gear-updates.enabled", "False",
         "--steps-per-save", str(args.iterations), "--machine.device-type", "cpu", "--vis", "tensorboard",
         "--steps-per-eval-batch", "0", "--steps-per-eval-image", "0", "--steps-per-eval-all-images", "0",
         "--pipeline.datamanager.sam-cache-dir", str(args.output / "sam-cache"),
@@ -253,21 +212,12 @@ def train_and_render(args: argparse.Namespace, dataset: Dataset, method: str, fr
         "--cache-dir", str(args.output / "frame-cache"),
     ]  # fmt: skip
     (args.output / "runs").mkdir(parents=True, exist_ok=True)
-    timing_path = args.output / "runs" / f"{name}-{method}.json"
     log_path = args.output / "runs" / f"{name}-{method}.log"
     print(f"[real_size_costs] {name} {method}: ns-train {shlex.join(command)}", flush=True)
-    with open(log_path, "w") as log:
-        child = subprocess.Popen([sys.executable, __file__, TRAIN_CHILD, str(timing_path), *command], stdout=log,
-                                 stderr=subprocess.STDOUT, env=command_environment())
-        _, status, usage = os.wait4(child.pid, 0)
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"ns-train failed for {name} {method}: see {log_path}")
-    timing = json.loads(timing_path.read_text())
+    timing, usage = timed_train(command, args.output / "runs" / f"{name}-{method}.json", log_path)
     render_path = args.output / "runs" / f"{name}-{method}-render.json"
-    with open(log_path, "a") as log:
-        subprocess.run([sys.executable, __file__, RENDER_CHILD, str(run_dir / "config.yml"), str(render_path),
-                        str(args.render_divisor), str(args.render_repeats)], stdout=log, stderr=subprocess.STDOUT,
-                       env=command_environment(), check=True)
+    run_measured([sys.executable, "-P", "-m", "benchmarks.real_size_costs", str(run_dir / "config.yml"),
+                  str(render_path), str(RENDER_DIVISOR), "1"], log_path.with_suffix(".render.log"))
     render = json.loads(render_path.read_text())
     iterations = timing["iteration_seconds"]
     record = {
@@ -281,8 +231,8 @@ def train_and_render(args: argparse.Namespace, dataset: Dataset, method: str, fr
         "rss_when_training_starts_bytes": timing["max_rss_before_training_bytes"],
         "setup_seconds": timing["setup_seconds"],
         "first_iteration_seconds": iterations[0],
-        "median_iteration_seconds": statistics.median(iterations[args.warmup :]),
-        "timed_iterations": len(iterations[args.warmup :]),
+        "median_iteration_seconds": statistics.median(iterations[1:]),
+        "timed_iterations": len(iterations[1:]),
         "gear_updates": timing["gear_updates"],
         "render": render,
         "parameter_bytes": parameter_bytes(method, frames),
@@ -291,34 +241,6 @@ def train_and_render(args: argparse.Namespace, dataset: Dataset, method: str, fr
     print(f"[real_size_costs] {name} {method}: peak RSS {record['peak_rss_bytes'] / 2**20:.0f} MiB, "
           f"{record['median_iteration_seconds']:.2f} s / iteration, render {render['seconds']}", flush=True)
     return record
-
-
-def train_child(timing_path: Path, arguments: List[str]) -> None:
-    """Child process: nerfstudio's ns-train, timing every ``Trainer.train_iteration`` and recording the set-up time
-    and the peak RSS so far when ``Trainer.train`` starts."""
-    from nerfstudio.engine.trainer import Trainer
-    from nerfstudio.scripts.train import entrypoint
-
-    started = time.perf_counter()
-    timing: Dict[str, Any] = {"iteration_seconds": []}
-    original_train, original_iteration = Trainer.train, Trainer.train_iteration
-
-    def timed_iteration(self, step: int):
-        entered = time.perf_counter()
-        result = original_iteration(self, step)
-        timing["iteration_seconds"].append(time.perf_counter() - entered)
-        return result
-
-    def timed_train(self) -> None:
-        timing["setup_seconds"] = time.perf_counter() - started
-        timing["max_rss_before_training_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-        original_train(self)
-        timing["gear_updates"] = int(self.pipeline.gear_update_state.num_updates)
-        timing_path.write_text(json.dumps(timing))
-
-    Trainer.train, Trainer.train_iteration = timed_train, timed_iteration
-    sys.argv = ["ns-train", *arguments]
-    entrypoint()
 
 
 def render_child(config_path: Path, result_path: Path, divisor: int, repeats: int) -> None:
@@ -514,91 +436,82 @@ def report(records: Dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--output", type=Path, default=Path("outputs/real_size_costs"),
-                        help="working folder: scenes, caches, runs, records.json, real_size_costs.md")
-    parser.add_argument("--results", type=Path, default=None, help="also write real_size_costs.md here")
-    parser.add_argument("--only", choices=("disk", "sam", "train"), default=None,
-                        help="run one part ('sam': the SAM cache alone, on the frames of an earlier disk run); the "
-                             "records of the other parts already in --output are kept in the report")
-    parser.add_argument("--sam-cache-module", type=Path, default=None,
-                        help="measure the SAM cache of this feature_cache.py (e.g. an earlier version: git show "
-                             "<commit>:gear_nerfstudio/sam/feature_cache.py > file) instead of the package's")
-    parser.add_argument("--sam-images", type=int, default=2, help="frames per dataset and content encoded for SAM")
-    parser.add_argument("--datasets", nargs="+", choices=tuple(DATASETS), default=list(DATASETS))
-    parser.add_argument("--methods", nargs="+", default=["gear-nerf", "gear-nerf-baseline"])
-    parser.add_argument("--iterations", type=int, default=4, help="iterations per run")
-    parser.add_argument("--gear-updates", action="store_true",
-                        help="run gear updates, with the schedule scaled to the iterations (needs --iterations >= 13)")
-    parser.add_argument("--warmup", type=int, default=1, help="first iterations left out of the median")
-    parser.add_argument("--frame-counts", nargs="+", type=int, default=[3, 8],
-                        help="frames of the training scenes (the panoptic capture has 20)")
-    parser.add_argument("--frame-check", nargs="*", default=["N3D"],
-                        help="datasets trained (with the first method) at every frame count; the others at the first")
-    parser.add_argument("--render-divisor", type=int, default=16)
-    parser.add_argument("--render-repeats", type=int, default=1)
-    args = parser.parse_args()
+@dataclasses.dataclass
+class RealSizeCosts:
+    """Measure the caches' disk, and short training runs' memory and speed, at the datasets' real sizes."""
 
-    records_path = args.output / "records.json"
-    records = json.loads(records_path.read_text()) if records_path.is_file() else {"invocations": [], "disk": [],
-                                                                                    "train": []}
-    parts = ["disk", "train"] if args.only is None else [args.only]
-    args.output.mkdir(parents=True, exist_ok=True)
-    load = LoadSampler()
-    if "disk" in parts or "sam" in parts:
-        module = feature_cache_module(args.sam_cache_module)
-        content = real_content()
-        measured = []
-        for name in args.datasets:
-            dataset = DATASETS[name]
-            for source, images in content.items():
-                if "disk" in parts:
-                    frames = measure_frames(dataset, source, images, args.output)
-                else:
-                    frames = next(r for r in records["disk"] if (r["dataset"], r["content"]) == (name, source))
-                    frames = {k: v for k, v in frames.items() if not k.startswith("sam_")}
-                folder = content_folder(args.output, dataset, source) / "sam-cache"
-                sam = measure_sam(training_frames(args.output, dataset, source), folder, module, args.sam_images)
-                measured.append({**frames, **sam, "sam_cache_module": str(args.sam_cache_module or module.__name__)})
-                print(f"[real_size_costs] disk: {measured[-1]}", flush=True)
-        keys = {(r["dataset"], r["content"], r["sam_format"]) for r in measured}
-        records["disk"] = [r for r in records["disk"] if (r["dataset"], r["content"], r["sam_format"]) not in keys]
-        records["disk"] = sorted(records["disk"] + measured, key=lambda r: (list(DATASETS).index(r["dataset"]),
-                                                                            r["content"], r["sam_format"]))
-    invocation = {"command": shlex.join(["nice", "-n", str(os.nice(0)), ".venv/bin/python", *sys.argv]),
-                  "parts": parts, "machine": machine_description("cpu")}
-    records["invocations"].insert(0, invocation)
+    output: Path = Path("outputs/real_size_costs")
+    """Working folder: scenes, caches, runs, records.json, real_size_costs.md."""
+    results: Optional[Path] = None
+    """Also write real_size_costs.md here."""
+    only: Optional[Literal["disk", "sam", "train"]] = None
+    """One part ('sam': the SAM cache alone, on the frames of an earlier disk run); the other parts' records stay."""
+    sam_cache_module: Optional[Path] = None
+    """Measure the SAM cache of this feature_cache.py (e.g. an earlier version from git) instead of the package's."""
+    datasets: Tuple[Literal["Technicolor", "N3D", "Immersive"], ...] = ("Technicolor", "N3D", "Immersive")
+    methods: Tuple[str, ...] = ("gear-nerf", "gear-nerf-baseline")
+    iterations: int = 4
+    """Iterations per run."""
+    frame_counts: Tuple[int, ...] = (3, 8)
+    """Frames of the training scenes (the panoptic capture has 20)."""
 
-    def save() -> None:
-        """Records and report as they stand (after every run, so that a stopped benchmark keeps what it measured)."""
-        invocation.update(date=datetime.datetime.now().strftime("%Y-%m-%d %H:%M"), load=load.summary())
-        records_path.write_text(json.dumps(records, indent=1))
-        for folder in (args.output, *([args.results] if args.results else [])):
-            (folder / "real_size_costs.md").write_text(report(records))
+    def main(self) -> None:
+        records_path = self.output / "records.json"
+        records = json.loads(records_path.read_text()) if records_path.is_file() else {"invocations": [], "disk": [],
+                                                                                        "train": []}
+        parts = ["disk", "train"] if self.only is None else [self.only]
+        self.output.mkdir(parents=True, exist_ok=True)
+        load = LoadSampler()
+        if "disk" in parts or "sam" in parts:
+            module = feature_cache_module(self.sam_cache_module)
+            content = real_content()
+            measured = []
+            for name in self.datasets:
+                dataset = DATASETS[name]
+                for source, images in content.items():
+                    if "disk" in parts:
+                        frames = measure_frames(dataset, source, images, self.output)
+                    else:
+                        frames = next(r for r in records["disk"] if (r["dataset"], r["content"]) == (name, source))
+                        frames = {k: v for k, v in frames.items() if not k.startswith("sam_")}
+                    folder = content_folder(self.output, dataset, source) / "sam-cache"
+                    sam = measure_sam(training_frames(self.output, dataset, source), folder, module, SAM_IMAGES)
+                    source_module = str(self.sam_cache_module or module.__name__)
+                    measured.append({**frames, **sam, "sam_cache_module": source_module})
+                    print(f"[real_size_costs] disk: {measured[-1]}", flush=True)
+            keys = {(r["dataset"], r["content"], r["sam_format"]) for r in measured}
+            records["disk"] = [r for r in records["disk"] if (r["dataset"], r["content"], r["sam_format"]) not in keys]
+            records["disk"] = sorted(records["disk"] + measured, key=lambda r: (list(DATASETS).index(r["dataset"]),
+                                                                                r["content"], r["sam_format"]))
+        invocation = {"command": shlex.join(["nice", "-n", str(os.nice(0)), ".venv/bin/python", "-m", "benchmarks", *sys.argv[1:]]),
+                      "parts": parts, "machine": machine_description("cpu")}
+        records["invocations"].insert(0, invocation)
 
-    save()
-    if "train" in parts:
-        runs = [
-            (name, method, frames)
-            for method in args.methods
-            for name in args.datasets
-            for frames in (args.frame_counts if name in args.frame_check and method == args.methods[0]
-                           else args.frame_counts[:1])
-        ]
-        for name, method, frames in runs:
-            record = train_and_render(args, DATASETS[name], method, frames)
-            records["train"] = [r for r in records["train"] if (r["dataset"], r["method"], r["frames"]) != (name, method, frames)]
-            records["train"] = sorted(records["train"] + [record], key=lambda r: (
-                r["method"], list(DATASETS).index(r["dataset"]), r["frames"]))
-            save()
-    save()
-    print(report(records))
+        def save() -> None:
+            """Records and report as they stand (after every run, so that a stopped benchmark keeps what it measured)."""
+            invocation.update(date=datetime.datetime.now().strftime("%Y-%m-%d %H:%M"), load=load.summary())
+            records_path.write_text(json.dumps(records, indent=1))
+            for folder in (self.output, *([self.results] if self.results else [])):
+                (folder / "real_size_costs.md").write_text(report(records))
 
-if __name__ == "__main__":
-    if len(sys.argv) > 2 and sys.argv[1] == TRAIN_CHILD:
-        train_child(Path(sys.argv[2]), sys.argv[3:])
-    elif len(sys.argv) > 2 and sys.argv[1] == RENDER_CHILD:
-        render_child(Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5]))
-    else:
-        main()
+        save()
+        if "train" in parts:
+            runs = [
+                (name, method, frames)
+                for method in self.methods
+                for name in self.datasets
+                for frames in (self.frame_counts if name == "N3D" and method == self.methods[0]
+                               else self.frame_counts[:1])
+            ]
+            for name, method, frames in runs:
+                record = train_and_render(self, DATASETS[name], method, frames)
+                records["train"] = [r for r in records["train"] if (r["dataset"], r["method"], r["frames"]) != (name, method, frames)]
+                records["train"] = sorted(records["train"] + [record], key=lambda r: (
+                    r["method"], list(DATASETS).index(r["dataset"]), r["frames"]))
+                save()
+        save()
+        print(report(records))
+
+
+if __name__ == "__main__":  # the render child of ``train_and_render``
+    render_child(Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]))

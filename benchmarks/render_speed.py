@@ -1,48 +1,29 @@
-"""Render and training speed of trained Gear-NeRF runs: full-image render time per frame, pixels per second and
-samples per ray of the model's render path (``GearNeRFModel.get_outputs_for_camera_ray_bundle``) against nerfstudio's
-generic path on the same checkpoint in the same process (``Model.get_outputs_for_camera_ray_bundle``: chunks of
-``eval_num_rays_per_chunk`` rays through ``get_outputs``, every output), the image difference between the two, both
-images' PSNR against the held-out frames, and training rays per second (nerfstudio's ``Trainer.train_iteration``).
-
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/render_speed.py <run>/config.yml [<run>/config.yml ...] \\
-        --output benchmarks/results/render_speed.md --images benchmarks/results
-
-Each render is timed ``--repeats`` times (median) on ``--frames`` held-out frames evenly spaced over the video; the
-training rate is the median of ``--train-windows`` windows of 10 iterations after 5 warm-up iterations, on a copy of
-the run's model (the run folder is not written to).
-
-With ``--samples 32,16,12 ...`` it measures instead the model's render at other render sample counts
-(``--pipeline.model.render-num-proposal-samples 32 16 --pipeline.model.render-num-samples 12``) against the run's own.
-"""
+"""Render and training speed of trained runs: full-image seconds per frame, pixels / s and samples per ray of the
+model's render path against nerfstudio's generic one (``Model.get_outputs_for_camera_ray_bundle``) on the same
+checkpoint, their difference and PSNR against the held-out frames, and training rays / s (``Trainer.train_iteration``,
+median of windows of 10 iterations after 5 warm-up ones, on a copy of the model). With ``--samples``, the model's
+render at other render sample counts against the run's own instead."""
 
 from __future__ import annotations
 
-import argparse
 import contextlib
+import dataclasses
 import platform
 import statistics
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
+import tyro
 from nerfstudio.models.base_model import Model
+from nerfstudio.utils.eval_utils import eval_setup
 from PIL import Image
 from torch import Tensor
-from nerfstudio.utils.eval_utils import eval_setup
 
+from benchmarks.common import timed, write_report
 from gear_nerfstudio.model.gear_model import psnr
-
-
-def timed(function, repeats: int):
-    """(median seconds, last result) of ``repeats`` calls."""
-    times, result = [], None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), result
 
 
 def save_strip(path: Path, truth: Tensor, generic: Tensor, rendered: Tensor) -> None:
@@ -150,48 +131,48 @@ def training_rate(config: Path, windows: int) -> float:
     return statistics.median(rates)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("configs", nargs="+", type=Path, help="config.yml of trained runs")
-    parser.add_argument("--frames", type=int, default=3, help="held-out frames per run")
-    parser.add_argument("--repeats", type=int, default=3, help="timings per render (median)")
-    parser.add_argument("--train-windows", type=int, default=5, help="windows of 10 training iterations (median)")
-    parser.add_argument("--output", type=Path, default=None, help="append the table to this Markdown file")
-    parser.add_argument("--images", type=Path, default=None, help="save each run's first frame side by side here")
-    parser.add_argument(
-        "--samples", nargs="+", default=None, metavar="P1,P2,N",
-        help="instead: the render at these render sample counts (proposal iterations' counts, then n) against the "
-        "run's own",
-    )  # fmt: skip
-    args = parser.parse_args()
-    if args.samples is not None:
-        header = (
-            "| run | render samples: proposal iterations, n | render s / frame | pixels / s | PSNR (dB) | "
-            "PSNR against the run's own counts (dB) |"
-        )
+@dataclasses.dataclass
+class RenderSpeed:
+    """Measure the render and training speed of trained runs; print the table, append it to ``--output``."""
+
+    configs: tyro.conf.Positional[Tuple[Path, ...]]
+    """config.yml of trained runs."""
+    frames: int = 3
+    """Held-out frames per run, evenly spaced over the video."""
+    repeats: int = 3
+    """Timings per render (median)."""
+    train_windows: int = 5
+    """Windows of 10 training iterations (median)."""
+    output: Optional[Path] = None
+    """Append the table to this Markdown file."""
+    images: Optional[Path] = None
+    """Save each run's first frame (truth, generic, model, difference x 100) here."""
+    samples: Optional[Tuple[str, ...]] = None
+    """Instead: the render at these sample counts ("P1,P2,N": the proposal iterations' counts, then n)."""
+
+    def main(self) -> None:
+        if self.samples is not None:
+            header = ("| run | render samples: proposal iterations, n | render s / frame | pixels / s | PSNR (dB) | "
+                      "PSNR against the run's own counts (dB) |")
+            lines = [machine_line(), "", header, "|" + " --- |" * (header.count("|") - 1)]
+            for config in self.configs:
+                lines += sample_rows(config, self.frames, self.repeats, list(self.samples))
+            return write_report(self.output, "\n".join(lines) + "\n\n", append=True)
+        header = ("| run | pixels | render s / frame: generic -> model (speed-up) | pixels / s (model) | samples / ray | "
+                  "PSNR generic / model (dB) | model vs generic: max abs diff, PSNR (dB) | training rays / s |")
         lines = [machine_line(), "", header, "|" + " --- |" * (header.count("|") - 1)]
-        for config in args.configs:
-            lines += sample_rows(config, args.frames, args.repeats, args.samples)
-        write(lines, args.output)
-        return
-    header = (
-        "| run | pixels | render s / frame: generic -> model (speed-up) | pixels / s (model) | samples / ray | "
-        "PSNR generic / model (dB) | model vs generic: max abs diff, PSNR (dB) | training rays / s |"
-    )
-    lines = [machine_line(), "", header, "|" + " --- |" * (header.count("|") - 1)]
-    for config in args.configs:
-        row = render_rows(config, args.frames, args.repeats, args.images)
-        rate = training_rate(config, args.train_windows)
-        speed_up = row["generic_s"] / row["model_s"]
-        lines.append(
-            f"| {config.parent} | {row['pixels']:.0f} | "
-            f"{row['generic_s']:.2f} -> {row['model_s']:.2f} ({speed_up:.2f}x) | "
-            f"{row['pixels'] / row['model_s']:,.0f} | {row['samples_per_ray']:.1f} | "
-            f"{row['generic_psnr']:.3f} / {row['model_psnr']:.3f} | "
-            f"{row['max_difference']:.2g}, {row['difference_psnr']:.1f} | {rate:,.0f} |"
-        )
-        print(lines[-1], flush=True)
-    write(lines, args.output)
+        for config in self.configs:
+            row = render_rows(config, self.frames, self.repeats, self.images)
+            rate = training_rate(config, self.train_windows)
+            lines.append(
+                f"| {config.parent} | {row['pixels']:.0f} | "
+                f"{row['generic_s']:.2f} -> {row['model_s']:.2f} ({row['generic_s'] / row['model_s']:.2f}x) | "
+                f"{row['pixels'] / row['model_s']:,.0f} | {row['samples_per_ray']:.1f} | "
+                f"{row['generic_psnr']:.3f} / {row['model_psnr']:.3f} | "
+                f"{row['max_difference']:.2g}, {row['difference_psnr']:.1f} | {rate:,.0f} |"
+            )
+            print(lines[-1], flush=True)
+        write_report(self.output, "\n".join(lines) + "\n\n", append=True)
 
 
 def machine_line() -> str:
@@ -201,16 +182,3 @@ def machine_line() -> str:
         f"Machine: {platform.machine()} {platform.processor() or ''}, {torch.get_num_threads()} torch threads, "
         f"torch {torch.__version__}, device {device}."
     )
-
-
-def write(lines: List[str], output: Optional[Path]) -> None:
-    """Print the table and append it to ``output`` (Markdown) when given."""
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if output is not None:
-        with output.open("a") as handle:
-            handle.write(text + "\n")
-
-
-if __name__ == "__main__":
-    main()

@@ -1,79 +1,9 @@
-"""Speed / accuracy benchmark: Gear-NeRF against its baselines and ablations, at several scene sizes and on
-real multi-view video, with seeds.
-
-One command trains and evaluates every (scene, method, seed), one run after the other on this machine:
-
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/speed_accuracy.py --output outputs/speed_accuracy --results benchmarks/results
-
-Scenes (``SCENES``): synthetic scenes with ground truth (``gear_nerfstudio.tools.synthetic``, Neural 3D Video format,
-held-out camera cam00; moving pixels from the ground-truth motion) at two sizes, and real captures
-(``../shared/data/real/SOURCES.md``): ``panoptic`` (``panoptic_basketball``, Technicolor layout, held-out camera
-06, which has foreground masks of the moving people) and ``panoptic-video`` (``panoptic_basketball_video``, Neural
-3D Video layout at downscale 2, frames 0-29, held-out cam00; ``panoptic-video-full``: the same at full size, all 90
-frames, for a GPU, ``gpu_real_capture.md``), and one forward-facing time step, ``flame-steak``
-(``n3d_flame_steak_frame0``, downscale 2, held-out cam00). The committed results
-(``benchmarks/results/speed_accuracy.md``) are of the two real scenes, run as invocations side by side
-(``--scenes panoptic-video`` and ``--scenes panoptic --iterations 2250``, both with ``--ablations`` and nothing
-after it, ``--checkpoints 4 --eval-frames 4``; the results file lists the exact commands), then one
-``--report-only`` over both.
-
-Methods (``METHODS``), all ``ns-train <preset> <overrides>`` on the same base preset (``gear-nerf-small`` on
-the CPU, ``gear-nerf`` with ``--device cuda``) with the same data, iterations, batch and losses, except the one
-thing each changes:
-
-* ``gear-nerf``: the preset (N_gear = 4, gear updates, split sampling, L_SAM).
-* ``kplanes``: N_gear = 1 (plain K-Planes: one volume with one row per frame, the preset's base sampler), with L_SAM as
-  Gear-NeRF: the main baseline.
-* ablations: ``no-split`` (gears and updates, but no extra samples: split base 1), ``no-updates`` (no gear
-  update: every point stays in gear 1), ``gear-nerf-no-sam`` and ``kplanes-no-sam`` (no L_SAM; the upshift
-  masks still come from the SAM decoder on the ground-truth frames' embeddings), and the paper's
-  baselines ``uniform-128``, ``naive-medium`` and ``no-embedding``; for real captures ``no-appearance``,
-  ``uniform`` (the paper's n uniform base samples instead of the presets' proposal networks) and
-  ``random-background`` (nerfstudio's random background colour in training; see ``method_overrides``); for the
-  budget ``lr-0.01`` (every parameter group), ``rays-2048`` (with ``--iterations`` halved: equal rays), and
-  cheaper iterations ``samples-16`` and ``samples-16-rays-768``; ``proposal-warmup`` (the proposal networks'
-  update warm-up at a sixth of the run, K-Planes' 5,000 of 30,000, instead of a fixed 5,000 steps); the field's
-  untrained density ``initial-density``; for forward-facing rigs ``contraction`` (nerfacto's scene contraction
-  beyond the box and its far plane); and the later levers of ``real_capture_causes.md``: ``gear-rows-1`` and
-  ``gear-rows-4``, ``resolutions-64-128``, ``time-smoothness-1e-4``, ``gear-1-static`` (the paper's gear 1 of one
-  row in time),
-  ``gear-rows-all`` (every gear T rows),
-  ``views-every-frame`` (each gear update renders a view at every frame, at loss maps of 64 pixels), and
-  ``lr-half-decay`` (the cosine schedule of a run twice as long, ending at about half the rate).
-
-Seeds: ``--seeds`` seeds (``--machine.seed`` 42, 43, ...; ``--first-seed``) for ``--main-methods``, one seed for
-the others.
-
-What is measured, and how:
-
-* Training: each run is a child process running nerfstudio's ``ns-train`` entry point, with the evaluation
-  inside the training loop turned off and a checkpoint every ``iterations / checkpoints`` steps. The child
-  records, at each checkpoint, the training time since ``Trainer.train`` started, minus the time spent
-  writing earlier checkpoints (data loading, SAM encoding and set-up are not counted; gear updates are), in
-  wall-clock seconds and in CPU seconds of the training process.
-* Held-out metrics, per checkpoint: ``--eval-frames`` frames of the held-out camera, evenly spaced over the
-  video, rendered with ``model.get_outputs_for_camera`` and scored with the model's
-  ``get_image_metrics_and_images`` (PSNR, SSIM; LPIPS only when its weights are on disk, else "missing").
-* Moving region, per checkpoint (``gear_nerfstudio.model.moving_region``, as ns-eval): PSNR over the moving pixels
-  of the scored frames and over the rest, and with ``model.visible_gear_levels`` (Eq 5 at the surface each pixel
-  sees) the share of moving pixels at gear >= 2 and of the rest at gear 1. The moving pixels are the person masks
-  where a scene passes ``--moving-masks`` (``panoptic``, ``panoptic-video-full-30``), else the held-out pixels whose
-  colour changes over the window.
-* Render FPS, samples per ray, parameters (all, and in use), gear updates run (from the checkpoint), peak RSS.
-* Equal iterations: the last checkpoint. Equal training time (the headline): per scene, a time budget (the
-  shortest mean total training time of the main methods, or ``--time-budget``); each run is scored at its
-  last checkpoint within the budget. On the CPU the headline clock is the CPU time of the training process
-  (run it single-threaded, ``OMP_NUM_THREADS=1``: then it equals the wall-clock time of an idle machine; it
-  depends much less on what else the machine runs than the wall-clock time does, but it still rose by 20-30 %
-  per iteration when every core was busy, so the runs compared should share the machine alike;
-  ``real_capture_causes.md``); the wall-clock table follows. On CUDA the headline is the
-  wall-clock time. Means and sample standard deviations are over seeds.
-
-Writes ``<output>/speed_accuracy.md`` (tables, targets, command, machine, date), ``<output>/speed_accuracy.png``
-(PSNR against training time per scene, mean and range over seeds) and ``<output>/records.json``; with
-``--results DIR`` the markdown and the plot are copied there too. ``--report-only`` writes them from the run
-records already in the output folder (from one or several earlier invocations), without training.
-"""
+"""Speed / accuracy: Gear-NeRF against plain K-Planes and one-change variants (``METHODS``), on synthetic and real
+scenes (``SCENES``), with seeds; held-out PSNR / SSIM / LPIPS, moving-region PSNR and gear shares
+(``gear_nerfstudio.model.moving_region``, as ns-eval), render FPS, samples per ray, parameters and peak RSS at every
+checkpoint; scored at equal iterations and at equal training time (CPU seconds of a single-threaded training process
+on the CPU, wall-clock on CUDA). Writes ``<output>/speed_accuracy.md``, ``.png`` and ``records.json``
+(``benchmarks/results/speed_accuracy.md`` says how it was run)."""
 
 from __future__ import annotations
 
@@ -82,125 +12,67 @@ import datetime
 import json
 import math
 import os
-import platform
 import re
 import shlex
 import shutil
-import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 import tyro
 
-from compare_views import contact_sheet
-from environment import command_environment
+from benchmarks.common import REAL, contact_sheet, machine_description, timed, timed_train
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-from gear_nerfstudio.model.moving_region import mask_path
-
-TRAIN_CHILD = "_train"
-"""First argument of the child process that runs ``ns-train`` with the timing hooks."""
-
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-"""The real captures (``../shared/data/real`` next to the repository)."""
 
 Clock = Literal["seconds", "cpu_seconds"]
 """A checkpoint's training time: wall-clock or CPU seconds of the training process."""
 
-METHODS: Dict[str, str] = {
-    "gear-nerf": "Gear-NeRF",
-    "kplanes": "plain K-Planes (N_gear = 1) with L_SAM",
-    "no-split": "Gear-NeRF w/o split sampling",
-    "no-updates": "Gear-NeRF w/o gear updates",
-    "gear-nerf-no-sam": "Gear-NeRF w/o L_SAM",
-    "kplanes-no-sam": "plain K-Planes w/o L_SAM",
-    "uniform-128": "K-Planes, 128 uniform samples, with L_SAM",
-    "naive-medium": "naive temporal, medium (T/2 rows), with L_SAM",
-    "no-embedding": "Gear-NeRF w/o embedding (loss-threshold masks, no L_SAM)",
-    "no-appearance": "Gear-NeRF w/o per-camera appearance codes",
-    "uniform": "Gear-NeRF with n uniform base samples (the paper's sampler)",
-    "random-background": "Gear-NeRF trained on a random background colour (transparency costs loss)",
-    "lr-0.01": "Gear-NeRF at learning rate 0.01 (K-Planes') instead of 0.02",
-    "rays-2048": "Gear-NeRF on 2,048 rays per batch instead of 1,024",
-    "initial-density": "Gear-NeRF starting from density 2 per scene unit instead of about 0.37",
-    "contraction": "Gear-NeRF with space beyond the scene box contracted (far plane 1,000, as nerfacto)",
-    "samples-16": "Gear-NeRF with 16 base samples per ray instead of 24",
-    "samples-16-rays-768": "Gear-NeRF with 16 base samples per ray and 768 rays per batch",
-    "proposal-warmup": "Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
-    "gear-rows-1": "Gear-NeRF with a gear function constant in time (k' of 1 row)",
-    "gear-rows-4": "Gear-NeRF with a gear function of 4 rows in time (k')",
-    "gear-1-static": "Gear-NeRF whose gear 1 has one row in time (Sec 4.4, the paper) instead of the presets' T/4",
-    "gear-rows-all": "Gear-NeRF whose every gear has T rows in time (no gear is static) instead of T/4 to T",
-    "lr-half-decay": "Gear-NeRF whose learning rates follow the cosine schedule of a run twice as long (end at half)",
-    "views-every-frame": "Gear-NeRF whose updates render a view at every frame (loss maps of 64 pixels) instead of 4",
-    "resolutions-64-128": "Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
-    "time-smoothness-1e-4": "Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
+LR = " ".join(f"--optimizers.{group}.optimizer.lr 0.01" for group in ("fields", "proposal-networks", "gear-field"))
+DECAY = " ".join(f"--optimizers.{group}.scheduler.max-steps {{steps}}" for group in ("fields", "proposal-networks"))
+METHODS: Dict[str, Tuple[str, str]] = {
+    "gear-nerf": ("Gear-NeRF", ""),
+    "kplanes": ("plain K-Planes (N_gear = 1) with L_SAM", "--pipeline.model.num-gears 1"),
+    "no-split": ("Gear-NeRF w/o split sampling", "--pipeline.model.split-base 1"),
+    "random-background": ("Gear-NeRF trained on a random background colour (transparency costs loss)",
+                          "--pipeline.model.background-color random"),
+    "lr-0.01": ("Gear-NeRF at learning rate 0.01 (K-Planes') instead of 0.02", LR),
+    "rays-2048": ("Gear-NeRF on 2,048 rays per batch instead of 1,024",
+                  "--pipeline.datamanager.train-num-rays-per-batch 2048"),
+    "initial-density": ("Gear-NeRF starting from density 2 per scene unit instead of about 0.37",
+                        "--pipeline.model.initial-density 2"),
+    "contraction": ("Gear-NeRF with space beyond the scene box contracted (far plane 1,000, as nerfacto)",
+                    "--pipeline.model.unbounded True --pipeline.model.far-plane 1000"),
+    "samples-16": ("Gear-NeRF with 16 base samples per ray instead of 24", "--pipeline.model.num-samples 16"),
+    "samples-16-rays-768": ("Gear-NeRF with 16 base samples per ray and 768 rays per batch",
+                            "--pipeline.model.num-samples 16 --pipeline.datamanager.train-num-rays-per-batch 768"),
+    "proposal-warmup": ("Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
+                        "--pipeline.model.proposal-warmup {sixth}"),
+    "gear-rows-1": ("Gear-NeRF with a gear function constant in time (k' of 1 row)",
+                    "--pipeline.model.gear-time-resolution 1"),
+    "gear-rows-4": ("Gear-NeRF with a gear function of 4 rows in time (k')", "--pipeline.model.gear-time-resolution 4"),
+    "gear-1-static": ("Gear-NeRF whose gear 1 has one row in time (Sec 4.4, the paper) instead of the presets' T/4",
+                      "--pipeline.model.gear1-row-fraction 0"),
+    "gear-rows-all": ("Gear-NeRF whose every gear has T rows in time (no gear is static) instead of T/4 to T",
+                      "--pipeline.model.gear1-row-fraction 1"),
+    "lr-half-decay": ("Gear-NeRF whose learning rates follow the cosine schedule of a run twice as long (end at half)",
+                      DECAY.replace("{steps}", "{double}")),
+    "views-every-frame": ("Gear-NeRF whose updates render a view at every frame (loss maps of 64 pixels) instead of 4",
+                          "--pipeline.gear-updates.views-per-update {frames} --pipeline.gear-updates.loss-map-size 64 "
+                          "--pipeline.gear-updates.patch-size 4"),
+    "resolutions-64-128": ("Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
+                           "--pipeline.model.resolutions 64 128"),
+    "time-smoothness-1e-4": ("Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
+                             "--pipeline.model.time-smoothness-mult 1e-4"),
 }
-"""Method keys and their labels in the tables and the plot."""
+"""Method keys: (label in the tables and the plot, ns-train overrides on the base preset; ``method_overrides``)."""
 
 
 def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
-    """``ns-train`` overrides of a method on top of the base preset, for a run of ``iterations``."""
-    no_sam = ["--pipeline.datamanager.use-sam-features", "False", "--pipeline.gear-updates.sam-loss-weight", "0"]
-    single = ["--pipeline.model.num-gears", "1"]
-    uniform = ["--pipeline.model.base-sampler", "uniform"]
-    samples_16 = ["--pipeline.model.num-samples", "16"]
-    rays_768 = ["--pipeline.datamanager.train-num-rays-per-batch", "768"]
-    overrides = {
-        "gear-nerf": [],
-        "kplanes": single,
-        "no-split": ["--pipeline.model.split-base", "1"],
-        "no-updates": ["--pipeline.gear-updates.enabled", "False"],
-        "gear-nerf-no-sam": no_sam,
-        "kplanes-no-sam": [*single, *no_sam],
-        "uniform-128": [*single, *uniform, "--pipeline.model.num-samples", "128"],
-        "naive-medium": [*single, "--pipeline.model.time-resolutions", str(max(1, math.ceil(frames / 2)))],
-        "no-embedding": [*no_sam, "--pipeline.gear-updates.mask-source", "loss_threshold"],
-        "no-appearance": ["--pipeline.model.appearance-dim", "0"],
-        "uniform": uniform,
-        "random-background": ["--pipeline.model.background-color", "random"],
-        "lr-0.01": [arg for group in ("fields", "proposal-networks", "gear-field")
-                    for arg in (f"--optimizers.{group}.optimizer.lr", "0.01")],  # fmt: skip
-        "rays-2048": ["--pipeline.datamanager.train-num-rays-per-batch", "2048"],
-        "initial-density": ["--pipeline.model.initial-density", "2"],
-        "contraction": ["--pipeline.model.unbounded", "True", "--pipeline.model.far-plane", "1000"],
-        "samples-16": samples_16,
-        "samples-16-rays-768": [*samples_16, *rays_768],
-        "proposal-warmup": ["--pipeline.model.proposal-warmup", str(max(1, iterations // 6))],
-        "gear-rows-1": ["--pipeline.model.gear-time-resolution", "1"],
-        "gear-rows-4": ["--pipeline.model.gear-time-resolution", "4"],
-        "gear-1-static": ["--pipeline.model.gear1-row-fraction", "0"],
-        "gear-rows-all": ["--pipeline.model.gear1-row-fraction", "1"],
-        "lr-half-decay": decay_over(2 * iterations),
-        "views-every-frame": ["--pipeline.gear-updates.views-per-update", str(frames),
-                              "--pipeline.gear-updates.loss-map-size", "64", "--pipeline.gear-updates.patch-size", "4"],
-        "resolutions-64-128": ["--pipeline.model.resolutions", "64", "128"],
-        "time-smoothness-1e-4": ["--pipeline.model.time-smoothness-mult", "1e-4"],
-    }
-    if method not in overrides:
+    """``ns-train`` overrides of a method for a run of ``iterations`` on ``frames`` frames."""
+    if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    return overrides[method]
-
-
-def decay_over(steps: int) -> List[str]:
-    """``ns-train`` overrides that spread the radiance fields' cosine learning-rate decay over ``steps``."""
-    return [arg for group in ("fields", "proposal-networks")
-            for arg in (f"--optimizers.{group}.scheduler.max-steps", str(steps))]  # fmt: skip
-
-
-def read_mask(masks: Path, camera: str, number: int) -> np.ndarray:
-    """A real capture's foreground mask (``mask_path``) as an (H, W) bool map."""
-    from PIL import Image
-
-    return np.array(Image.open(mask_path(masks, camera, number)).convert("L")) > 127
-
-
-def gear_mask_counts(levels: np.ndarray, moving: np.ndarray) -> np.ndarray:
-    """A gear map (Eq 5 levels, H x W) against a map of moving pixels: [moving pixels at gear >= 2, moving pixels,
-    other pixels at gear 1, other pixels]."""
-    return np.array([(levels[moving] >= 2).sum(), moving.sum(), (levels[~moving] == 1).sum(), (~moving).sum()])
+    return METHODS[method][1].format(frames=frames, sixth=max(1, iterations // 6), double=2 * iterations).split()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -299,8 +171,8 @@ chosen on, held out at cam20, which has masks."""
 
 
 @dataclasses.dataclass
-class SpeedAccuracyBenchmark:
-    """Train and evaluate Gear-NeRF, its baseline and ablations; write tables and a plot."""
+class SpeedAccuracy:
+    """Train and evaluate Gear-NeRF, plain K-Planes and variants (``METHODS``) on ``SCENES``; tables and a plot."""
 
     output: Path = Path("outputs/speed_accuracy")
     """Working folder: scenes, runs, logs, records.json, speed_accuracy.md / .png."""
@@ -310,10 +182,8 @@ class SpeedAccuracyBenchmark:
     """Scenes to run (``SCENES``)."""
     main_methods: Tuple[str, ...] = ("gear-nerf", "kplanes")
     """Methods run with every seed; the equal-time budget is the shortest of their mean training times."""
-    ablations: Tuple[str, ...] = ("no-split", "no-updates", "gear-nerf-no-sam", "kplanes-no-sam")
+    ablations: Tuple[str, ...] = ()
     """Methods run with the first seed only."""
-    ablation_scenes: Tuple[str, ...] = ("mixed", "panoptic")
-    """Scenes on which the ablations run."""
     seeds: int = 3
     """Seeds of the main methods (``--machine.seed`` first_seed, first_seed + 1, ...)."""
     first_seed: int = 42
@@ -327,12 +197,6 @@ class SpeedAccuracyBenchmark:
     """Held-out frames scored per checkpoint, evenly spaced over the video (all when the video is shorter)."""
     device: Literal["cpu", "cuda"] = "cpu"
     """cpu: the CPU preset gear-nerf-small; cuda: the paper preset gear-nerf."""
-    preset: Optional[str] = None
-    """Base preset; default gear-nerf-small on cpu, gear-nerf on cuda."""
-    time_budget: Optional[float] = None
-    """Equal-time budget in seconds for every scene; default per scene (see ``main_methods``)."""
-    reuse_runs: bool = False
-    """Skip training a run whose record (same command) is already in the output folder."""
     report_only: bool = False
     """Train nothing: write the tables and plot from the records of every planned run in the output folder."""
 
@@ -352,15 +216,14 @@ class SpeedAccuracyBenchmark:
             scene = SCENES[name]
             if not self.report_only:
                 scene.write(self.output)
-            ablations = self.ablations if name in self.ablation_scenes else ()
-            for method in (*self.main_methods, *ablations):
+            for method in (*self.main_methods, *self.ablations):
                 seeds = self.seeds if method in self.main_methods else 1
                 for seed in range(self.first_seed, self.first_seed + seeds):
                     records.append(self.run(scene, method, seed))
                     (self.output / "records.json").write_text(json.dumps(records, indent=1))
         finished = datetime.datetime.now(datetime.timezone.utc)
         context = {
-            "command": "python benchmarks/speed_accuracy.py " + shlex.join(sys.argv[1:]),
+            "command": "python -m benchmarks " + shlex.join(sys.argv[1:]),
             "started": started.isoformat(timespec="seconds"),
             "finished": finished.isoformat(timespec="seconds"),
             "machine": machine_description(self.device),
@@ -380,7 +243,7 @@ class SpeedAccuracyBenchmark:
 
     @property
     def base_preset(self) -> str:
-        return self.preset or ("gear-nerf" if self.device == "cuda" else "gear-nerf-small")
+        return "gear-nerf" if self.device == "cuda" else "gear-nerf-small"
 
     def preset_iterations(self) -> int:
         if self.iterations is not None:
@@ -402,7 +265,7 @@ class SpeedAccuracyBenchmark:
             "--output-dir", str(self.output / "runs"), "--experiment-name", scene.name,
             "--timestamp", f"{method}-seed{seed}", "--machine.seed", str(seed),
             "--max-num-iterations", str(iterations),
-            *decay_over(iterations),
+            *DECAY.format(steps=iterations).split(),
             "--steps-per-save", str(steps_per_save), "--save-only-latest-checkpoint", "False",
             "--steps-per-eval-batch", "0", "--steps-per-eval-image", "0", "--steps-per-eval-all-images", "0",
             "--machine.device-type", self.device, "--vis", "tensorboard",
@@ -421,25 +284,10 @@ class SpeedAccuracyBenchmark:
             if not record_path.is_file():
                 raise FileNotFoundError(f"{record_path}: no record of {scene.name} / {method} / {seed} to report")
             return json.loads(record_path.read_text())
-        if self.reuse_runs and record_path.is_file():
-            record = json.loads(record_path.read_text())
-            if record.get("command") == command:
-                print(f"[speed_accuracy] {scene.name} / {method} / {seed}: reusing {record_path}", flush=True)
-                return record
         shutil.rmtree(run_dir, ignore_errors=True)
         run_dir.mkdir(parents=True)
-        timing_path = run_dir / "benchmark_timing.json"
         print(f"[speed_accuracy] {scene.name} / {method} / {seed}: ns-train {shlex.join(command)}", flush=True)
-        with open(run_dir / "train.log", "w") as log:
-            child = subprocess.Popen(
-                [sys.executable, str(Path(__file__).resolve()), TRAIN_CHILD, str(timing_path), *command],
-                stdout=log, stderr=subprocess.STDOUT, env=command_environment(),
-            )
-            _, status, usage = os.wait4(child.pid, 0)
-            child.returncode = os.waitstatus_to_exitcode(status)
-        if child.returncode != 0:
-            raise RuntimeError(f"ns-train failed ({child.returncode}) for {scene.name} / {method}: see {run_dir}/train.log")
-        timing = json.loads(timing_path.read_text())
+        timing, usage = timed_train(command, run_dir / "benchmark_timing.json", run_dir / "train.log", True)
         print(f"[speed_accuracy] {scene.name} / {method} / {seed}: trained in {timing['train_seconds']:.1f} s; "
               "evaluating", flush=True)
         record = {
@@ -466,7 +314,7 @@ class SpeedAccuracyBenchmark:
 class Report:
     """Tables, targets and plot of a set of run records."""
 
-    def __init__(self, benchmark: SpeedAccuracyBenchmark, records: List[Dict[str, Any]]) -> None:
+    def __init__(self, benchmark: SpeedAccuracy, records: List[Dict[str, Any]]) -> None:
         self.benchmark = benchmark
         self.records = records
         self.scenes = list(dict.fromkeys(r["scene"] for r in records))
@@ -489,8 +337,6 @@ class Report:
     def budget(self, scene: str, clock: Optional[Clock] = None) -> float:
         """Equal-time budget of a scene on a clock (default the headline's): ``--time-budget``, or the shortest
         mean training time of the main methods."""
-        if self.benchmark.time_budget is not None:
-            return self.benchmark.time_budget
         total = "train_" + (clock or self.headline_clock)
         means = [np.mean([r[total] for r in self.runs(scene, m)]) for m in self.benchmark.main_methods]
         return float(min(m for m in means if not np.isnan(m)))
@@ -510,11 +356,11 @@ class Report:
             for method in self.methods(scene):
                 points = self.at_budget(scene, method, clock)
                 if any(p is None for p in points):
-                    lines.append(f"| {scene} | {budget:.0f} | {METHODS[method]} | {len(points)} | "
+                    lines.append(f"| {scene} | {budget:.0f} | {METHODS[method][0]} | {len(points)} | "
                                  "a run has no checkpoint within the budget | | | | | |")
                     continue
                 lines.append(
-                    f"| {scene} | {budget:.0f} | {METHODS[method]} | {len(points)} | "
+                    f"| {scene} | {budget:.0f} | {METHODS[method][0]} | {len(points)} | "
                     f"{spread([p['step'] + 1 for p in points], 0)} | {spread([p['psnr'] for p in points])} | "
                     f"{scores(points, 'psnr_moving')} | {scores(points, 'psnr_static')} | "
                     f"{spread([p['ssim'] for p in points], 3)} | {lpips_of(points)} |"
@@ -533,8 +379,8 @@ class Report:
             f"Base preset `{b.base_preset}` with its own defaults (gear-update schedule included, scaled to the "
             f"iterations of each scene), device {b.device}. Held-out metrics on {b.eval_frames} frames of the held-out "
             f"camera, evenly spaced over the video.{lpips_note} Mean ± sample standard deviation over seeds; `n` is "
-            f"the number of seeds ({b.seeds} for {', '.join(METHODS[m] for m in b.main_methods)}"
-            + (f", 1 for the ablations, which ran on {', '.join(b.ablation_scenes)} only)." if b.ablations else ")."),
+            f"the number of seeds ({b.seeds} for {', '.join(METHODS[m][0] for m in b.main_methods)}"
+            + (", 1 for the ablations)." if b.ablations else ")."),
             "",
             "Scenes:",
             "",
@@ -547,7 +393,7 @@ class Report:
             )
         budget_rule = (
             "Each run at its last checkpoint within the scene's budget (the shortest mean total training time of "
-            + ", ".join(METHODS[m] for m in b.main_methods) + ")"
+            + ", ".join(METHODS[m][0] for m in b.main_methods) + ")"
         )
         lines += ["", "![PSNR against training time](speed_accuracy.png)", ""]
         if self.headline_clock == "cpu_seconds":
@@ -572,7 +418,7 @@ class Report:
             for method in self.methods(scene):
                 runs, finals = self.runs(scene, method), self.finals(scene, method)
                 lines.append(
-                    f"| {scene} | {METHODS[method]} | {len(runs)} | {spread([r['train_seconds'] for r in runs], 0)} | "
+                    f"| {scene} | {METHODS[method][0]} | {len(runs)} | {spread([r['train_seconds'] for r in runs], 0)} | "
                     f"{spread([1000 * r['train_seconds'] / r['iterations'] for r in runs], 0)} | "
                     f"{spread([p['psnr'] for p in finals])} | {scores(finals, 'psnr_moving')} | "
                     f"{scores(finals, 'psnr_static')} | {spread([p['ssim'] for p in finals], 3)} | "
@@ -662,7 +508,7 @@ class Report:
                 )
             lines.append(f"- {scene}: " + "; ".join(parts) + ".")
         below = [
-            f"{r['scene']} / {METHODS[r['method']]} / seed {r['seed']}" for r in self.records if ends_below_first_update(r)
+            f"{r['scene']} / {METHODS[r['method']][0]} / seed {r['seed']}" for r in self.records if ends_below_first_update(r)
         ]
         checked = sum(r.get("before_first_update") is not None for r in self.records)
         lines.append(
@@ -686,7 +532,7 @@ class Report:
                     views = [v["views_after"] - v["views_before"] for v in reviews]
                     held = [v["held_out_after"] - v["held_out_before"] for v in reviews if v["held_out_after"] is not None]
                     lines.append(
-                        f"| {scene} | {METHODS[method]} | {len(reviews)} | {update} | "
+                        f"| {scene} | {METHODS[method][0]} | {len(reviews)} | {update} | "
                         f"{spread([v['step'] for v in reviews], 0)} | {spread(views, 2, signed=True)} | "
                         f"{spread(held, 2, signed=True) if held else 'n/a'} | {sum(not v['kept'] for v in reviews)} |"
                     )
@@ -695,21 +541,15 @@ class Report:
     def pictures(self, folder: Path) -> List[Path]:
         """Per scene, the held-out view at two times (rows): ground truth, Gear-NeRF, plain K-Planes and Gear-NeRF's
         gear map, from the first seed's last checkpoint; one PNG per scene."""
-        from PIL import Image
-
         written = []
         for scene in self.scenes:
             runs = {m: self.runs(scene, m) for m in ("gear-nerf", "kplanes")}
             if not all(runs.values()):
                 continue
-            folders = {m: self.benchmark.run_dir(scene, m, min(r["seed"] for r in rs)) for m, rs in runs.items()}
-            stems = sorted({f.name.rsplit("_", 1)[0] for f in folders["gear-nerf"].glob("held_out_*_truth.png")})
-            columns = [("ground truth", "gear-nerf", "truth"), ("Gear-NeRF", "gear-nerf", "render"),
-                       ("plain K-Planes (one gear)", "kplanes", "render"), ("Gear-NeRF gear map", "gear-nerf", "gear")]
-            tiles = [[Image.open(folders[m] / f"{stem}_{kind}.png") for _, m, kind in columns] for stem in stems]
-            sheet = contact_sheet([label for label, _, _ in columns], tiles)
+            gear, kplanes = (self.benchmark.run_dir(scene, m, min(r["seed"] for r in rs)) for m, rs in runs.items())
             path = folder / f"speed_accuracy_{scene}.png"
-            sheet.save(path)
+            views_sheet([("ground truth", gear, "truth"), ("Gear-NeRF", gear, "render"),
+                         ("plain K-Planes (one gear)", kplanes, "render"), ("Gear-NeRF gear map", gear, "gear")]).save(path)
             written.append(path)
         return written
 
@@ -730,7 +570,7 @@ class Report:
                 seconds = np.mean([[p[self.headline_clock] for p in r["checkpoints"]] for r in runs], axis=0)
                 psnrs = np.array([[p["psnr"] for p in r["checkpoints"]] for r in runs])
                 line = axis.plot(seconds, psnrs.mean(axis=0), marker="o", markersize=3,
-                                 label=f"{METHODS[method]} (n={len(runs)})")[0]
+                                 label=f"{METHODS[method][0]} (n={len(runs)})")[0]
                 if len(runs) > 1:
                     axis.fill_between(seconds, psnrs.min(axis=0), psnrs.max(axis=0), color=line.get_color(), alpha=0.15)
             axis.axvline(self.budget(scene), color="grey", linestyle="--", linewidth=0.8)
@@ -841,13 +681,8 @@ def evaluate_checkpoints(
         render_seconds, samples, pixels = 0.0, 0.0, 0
         sums = {key: 0.0 for key in SUMS}
         for index in frames:
-            if cuda:
-                torch.cuda.synchronize()
-            started = time.perf_counter()
-            outputs = render(index)
-            if cuda:
-                torch.cuda.synchronize()
-            render_seconds += time.perf_counter() - started
+            seconds, outputs = timed(lambda: render(index), 1, torch.cuda.synchronize if cuda else lambda: None)
+            render_seconds += seconds
             image_metrics, _ = model.get_image_metrics_and_images(outputs, dataset[index])
             for name in metrics:
                 if name in image_metrics:
@@ -910,100 +745,39 @@ def update_reviews(log: str) -> List[Dict[str, Any]]:
     ]  # fmt: skip
 
 
-def machine_description(device: str) -> str:
-    """CPU model, cores, memory, OS, Python, torch, and the GPU when CUDA is used."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout.splitlines():
-            if line.startswith("Model name:"):
-                cpu = line.split(":", 1)[1].strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    memory = ""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal:"):
-                memory = f", {int(line.split()[1]) / 1024 ** 2:.0f} GiB RAM"
-    except OSError:
-        pass
-    import torch
+def views_sheet(columns: List[Tuple[str, Path, str]], crop: Optional[Tuple[int, int, int, int]] = None):
+    """Contact sheet of run folders' ``held_out_<frame>_<kind>.png``: one row per held-out frame of the first
+    column's folder, one column per (label, folder, kind); ``crop``: only that box, enlarged twice."""
+    from PIL import Image
 
-    text = (f"{cpu}, {os.cpu_count()} logical CPUs{memory}; {platform.platform()}; Python {platform.python_version()}, "
-            f"torch {torch.__version__} with {torch.get_num_threads()} CPU thread(s) per process")
-    if device == "cuda" and torch.cuda.is_available():
-        properties = torch.cuda.get_device_properties(0)
-        text += f"; GPU {properties.name} ({properties.total_memory / 1024 ** 3:.0f} GiB), CUDA {torch.version.cuda}"
-    return text
+    stems = sorted({f.name.rsplit("_", 1)[0] for f in columns[0][1].glob("held_out_*_truth.png")})
+    if not stems:
+        raise SystemExit(f"error: {columns[0][1]} has no held_out_*_truth.png (a speed-accuracy run folder has them)")
+    rows = [[Image.open(folder / f"{stem}_{kind}.png") for _, folder, kind in columns] for stem in stems]
+    if crop is not None:
+        size = (2 * (crop[2] - crop[0]), 2 * (crop[3] - crop[1]))
+        rows = [[tile.crop(crop).resize(size, Image.NEAREST) for tile in row] for row in rows]
+    return contact_sheet([label for label, _, _ in columns], rows)
 
 
-def train_child(timing_path: Path, arguments: List[str]) -> None:
-    """Child process: nerfstudio's ``ns-train`` with hooks on ``Trainer.train`` and ``save_checkpoint``.
+@dataclasses.dataclass
+class CompareViews:
+    """Held-out views of speed-accuracy runs side by side (the pictures beside the quality tables): the first run's
+    ground truth, each run's render, then the gear maps of the runs named in ``--gear-maps``."""
 
-    Writes to ``timing_path``: per checkpoint, the step and the training time before it, wall clock
-    (``seconds``) and CPU time of the process (``cpu_seconds``, all its threads), both from the start of
-    ``Trainer.train`` minus earlier checkpoint writes; the totals; the set-up time before the loop; and on
-    CUDA ``torch.cuda.max_memory_allocated`` in MiB. A checkpoint is also saved right before the first gear update
-    (its step in ``before_first_update``): the state every run is compared with at its end.
-    """
-    import torch
-    from nerfstudio.engine.trainer import Trainer
+    output: tyro.conf.Positional[Path]
+    """The PNG to write."""
+    runs: tyro.conf.Positional[Tuple[str, ...]]
+    """``label=run folder`` each."""
+    gear_maps: Tuple[str, ...] = ()
+    """Labels of the runs whose gear maps are shown."""
+    crop: Optional[Tuple[int, int, int, int]] = None
+    """left top right bottom: only that box of every view (held-out pixels), enlarged twice."""
 
-    process_start = time.perf_counter()
-    state: Dict[str, Any] = {"start": None, "cpu_start": None, "saving": 0.0, "cpu_saving": 0.0, "checkpoints": {}}
-    original_train, original_save = Trainer.train, Trainer.save_checkpoint
-
-    def timed_train(self) -> None:
-        state["start"], state["cpu_start"] = time.perf_counter(), time.process_time()
-        original_train(self)
-        checkpoints = [{"step": step, **times} for step, times in sorted(state["checkpoints"].items())]
-        timing = {
-            "setup_seconds": state["start"] - process_start,
-            "train_seconds": checkpoints[-1]["seconds"],
-            "train_cpu_seconds": checkpoints[-1]["cpu_seconds"],
-            "checkpoints": checkpoints,
-            "before_first_update": state.get("before_first_update"),
-            "peak_cuda_mib": torch.cuda.max_memory_allocated() / 1024 ** 2 if torch.cuda.is_initialized() else None,
-        }
-        timing_path.write_text(json.dumps(timing, indent=1))
-
-    def timed_save(self, step: int) -> None:
-        entered, cpu_entered = time.perf_counter(), time.process_time()
-        if state["start"] is not None:
-            # the final save repeats the last step's save when it falls on steps_per_save: keep the first
-            state["checkpoints"].setdefault(
-                int(step),
-                {
-                    "seconds": entered - state["start"] - state["saving"],
-                    "cpu_seconds": cpu_entered - state["cpu_start"] - state["cpu_saving"],
-                },
-            )
-        original_save(self, step)
-        state["saving"] += time.perf_counter() - entered
-        state["cpu_saving"] += time.process_time() - cpu_entered
-
-    from gear_nerfstudio.gears.updater import GearUpdater
-
-    original_update = GearUpdater.update
-
-    def update_after_checkpoint(self, step: int) -> Dict[str, float]:
-        if "before_first_update" not in state:
-            state["before_first_update"] = int(step)
-            state["trainer"].save_checkpoint(step)
-        return original_update(self, step)
-
-    def trainer_train(self) -> None:
-        state["trainer"] = self
-        timed_train(self)
-
-    Trainer.train, Trainer.save_checkpoint, GearUpdater.update = trainer_train, timed_save, update_after_checkpoint
-    from nerfstudio.scripts.train import entrypoint
-
-    sys.argv = ["ns-train", *arguments]
-    entrypoint()
-
-
-if __name__ == "__main__":
-    if len(sys.argv) > 2 and sys.argv[1] == TRAIN_CHILD:
-        train_child(Path(sys.argv[2]), sys.argv[3:])
-    else:
-        tyro.cli(SpeedAccuracyBenchmark).main()
+    def main(self) -> None:
+        folders = {label: Path(folder) for label, folder in (run.split("=", 1) for run in self.runs)}
+        first = next(iter(folders.values()))
+        columns = [("ground truth", first, "truth"), *((label, folder, "render") for label, folder in folders.items())]
+        columns += [(f"{label} gear map", folders[label], "gear") for label in self.gear_maps]
+        views_sheet(columns, self.crop).save(self.output)
+        print(self.output)

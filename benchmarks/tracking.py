@@ -1,38 +1,24 @@
-"""Free-viewpoint tracking (Sec 4.5) from one click, measured against ground-truth object masks.
-
-Writes a synthetic N3D scene with moving spheres and trains a preset with `ns-train` (or takes a trained
-run with `--config` and its `--scene`). For each tracked object (default: the slow sphere, which moves
-about 0.012 units a frame as in real video, and the fast sphere, which moves 0.28 units a frame, further
-than its own size), it clicks the middle of the object's ground-truth mask in a training camera at one
-time and runs `ns-gear-track` to the held-out camera cam00 at every frame time, once per propagation
-("box": the paper; "embedding": ours, see `gear_nerfstudio.tracking`). Reports mIoU / accuracy (cam00 at
-the clicked time) and t-mIoU / t-accuracy (cam00 at the other times), as the paper's tracking table. For
-reference it also runs the same tracking (`tracking.track`, same projected click) on the SAM backend's
-encoder features of cam00's real frames: what the backend gives without the NeRF.
-
-    .venv/bin/python benchmarks/tracking.py --output outputs/tracking
-
-Prints a markdown table and writes it to `<output>/tracking.md`.
-"""
+"""Free-viewpoint tracking (Sec 4.5) from one click on a synthetic scene, against ground-truth object masks: trains a
+preset (or takes ``--config`` and its ``--scene``), clicks each object in a training camera at one time and runs
+``ns-gear-track`` to the held-out cam00 at every frame, once per propagation; mIoU / Acc. at the clicked time,
+t-mIoU / t-Acc. at the others (the paper's table), beside the same tracking on the SAM encoder's features of cam00's
+real frames. Writes ``<output>/tracking.md``."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
-import subprocess
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
-import tyro
 from scipy import ndimage
 
-from environment import command_environment
+from benchmarks.common import mean, ns, pct, write_report
+from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding
-from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from gear_nerfstudio.tracking.metrics import accuracy, iou
 from gear_nerfstudio.tracking.propagation import track
@@ -42,9 +28,10 @@ PROPAGATIONS = ("box", "embedding")
 
 
 @dataclasses.dataclass
-class TrackingBenchmark:
+class Tracking:
+    """Train (or load) a run on a synthetic scene and score tracking from one click per object."""
+
     output: Path = Path("outputs/tracking")
-    method: str = "gear-nerf-small"
     iterations: int = 1500
     seed: int = 42
     """Training seed (`--machine.seed`; nerfstudio's default is 42)."""
@@ -116,7 +103,7 @@ class TrackingBenchmark:
                     summary["masks"], {r["time"]: (r.get("iou"), r.get("accuracy")) for r in summary["masks"]}, 2,
                 )  # fmt: skip
         tracked = time.time()
-        write_report(
+        tracking_report(
             self.output / "tracking.md", lines, details,
             f"Training {trained - started:.0f} s (0 when --config is given), tracking "
             f"({len(self.objects) * len(PROPAGATIONS)} ns-gear-track runs, each: model load, masks, overlay "
@@ -124,26 +111,15 @@ class TrackingBenchmark:
         )  # fmt: skip
 
     def train(self, scene: Path) -> Path:
-        runs = self.output / "runs"
-        runs.mkdir(parents=True, exist_ok=True)
-        ns(
-            "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
-            "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
-            "--machine.device-type", "cpu", "--machine.seed", str(self.seed), "--vis",
-            "tensorboard", "neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache"),
-            log=runs / "train.log",
-        )
-        return runs / "tracking" / self.method / "run" / "config.yml"
+        data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache")]
+        return train_preset(self.output, self.iterations, self.seed, "cpu", data)
 
     def click_pixel(self, scene: Path, object_id: int) -> Tuple[float, float]:
         """The pixel centre deepest inside the object's ground-truth mask at the clicked frame."""
         ids = np.load(scene / "ground_truth" / f"{self.click_camera}.npz")["object_ids"][self.click_frame]
-        inside = ids == object_id
-        if not inside.any():
+        if not (ids == object_id).any():
             raise SystemExit(f"object {object_id} is not visible in {self.click_camera} frame {self.click_frame}")
-        depth = ndimage.distance_transform_edt(inside)
-        row, col = np.unravel_index(int(np.argmax(depth)), depth.shape)
-        return col + 0.5, row + 0.5
+        return deepest_pixel(ids == object_id)
 
     @staticmethod
     def held_out_embeddings(scene: Path) -> Tuple[BuiltinSamBackend, List[Embedding], np.ndarray]:
@@ -177,21 +153,45 @@ class TrackingBenchmark:
             self.frames,
             propagation,
         )
-        scores = {m.time: self.score(m.mask, ids[round(m.time * (self.frames - 1))] == object_id) for m in masks}
-        at_click = [v for t, v in scores.items() if t == click_time]
-        other = [v for t, v in scores.items() if t != click_time]
-        return " | ".join(pct(mean(values, index)) for values in (at_click, other) for index in (0, 1))
-
-    @staticmethod
-    def score(mask: np.ndarray, truth: np.ndarray) -> Tuple[float, float]:
-        return iou(mask, truth), accuracy(mask, truth)
+        scores = {m.time: mask_scores(m.mask, ids[round(m.time * (self.frames - 1))] == object_id) for m in masks}
+        return summary_cells(scores, click_time)
 
 
-def write_report(path: Path, table: List[str], per_time: List[str], timing: str) -> None:
-    """Print the summary table, the per-time tables and the timing line, and write them to `path`."""
-    report = "\n".join(table + ["", "Per time:"] + per_time) + f"\n\n{timing}\n"
-    print(report)
-    path.write_text(report)
+def train_preset(output: Path, iterations: int, seed: int, device: str, options: List[str]) -> Path:
+    """Train gear-nerf-small with ns-train (``options`` after its own, the dataparser's last) into
+    ``<output>/runs/tracking/gear-nerf-small/run``, its log in ``<output>/runs/train.log``; its config.yml."""
+    method = "gear-nerf-small"
+    runs = output / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    ns(
+        "ns-train", method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp", "run",
+        "--max-num-iterations", str(iterations), *schedule_options(iterations), "--machine.device-type", device,
+        "--machine.seed", str(seed), "--vis", "tensorboard", *options, log=runs / "train.log",
+    )  # fmt: skip
+    return runs / "tracking" / method / "run" / "config.yml"
+
+
+def deepest_pixel(mask: np.ndarray) -> Tuple[float, float]:
+    """The pixel centre (x, y) deepest inside a mask."""
+    row, col = np.unravel_index(int(np.argmax(ndimage.distance_transform_edt(mask))), mask.shape)
+    return col + 0.5, row + 0.5
+
+
+def mask_scores(mask: np.ndarray, truth: np.ndarray) -> Tuple[float, float]:
+    """IoU and accuracy of a mask against the truth."""
+    return iou(mask, truth), accuracy(mask, truth)
+
+
+def summary_cells(scores: Dict[float, Tuple[float, float]], click_time: float) -> str:
+    """mIoU | Acc. at the clicked time | t-mIoU | t-Acc. at the others (%), from (IoU, accuracy) by time."""
+    at_click = [v for t, v in scores.items() if t == click_time]
+    other = [v for t, v in scores.items() if t != click_time]
+    return " | ".join(pct(mean(values, index)) for values in (at_click, other) for index in (0, 1))
+
+
+def tracking_report(path: Path, table: List[str], per_time: List[str], timing: str) -> None:
+    """Print and write the summary table, the per-time tables and the timing line."""
+    write_report(path, "\n".join(table + ["", "Per time:"] + per_time) + f"\n\n{timing}\n")
 
 
 def track_click(
@@ -224,32 +224,9 @@ def per_time_table(
     return rows
 
 
-def ns(*args: str, log: Optional[Path] = None) -> None:
-    """Run one of the environment's ns-* commands (the virtual environment's, else the first on PATH: where a
-    package folder's scripts are not beside the interpreter); its output goes to `log` when given."""
-    environment = command_environment()
-    command = [shutil.which(args[0], path=environment["PATH"]) or args[0], *args[1:]]
-    if log is None:
-        subprocess.run(command, check=True, env=environment)
-        return
-    with open(log, "w") as handle:
-        subprocess.run(command, check=True, env=environment, stdout=handle, stderr=subprocess.STDOUT)
-
-
-def pct(value: Optional[float]) -> str:
-    return "n/a" if value is None else f"{100 * value:.1f}"
-
-
-def mean(values: List[Tuple[float, float]], index: int) -> Optional[float]:
-    return float(np.mean([v[index] for v in values])) if values else None
-
-
 def describe(prompt: Dict) -> str:
     if "from_time" not in prompt:
         return "click"
     point = "" if "points" not in prompt else " + region points"
     return f"box from t={prompt['from_time']:.2f}{point}"
 
-
-if __name__ == "__main__":
-    tyro.cli(TrackingBenchmark).main()

@@ -1,33 +1,9 @@
-"""Free-viewpoint tracking (Sec 4.5) on real video: the CMU Panoptic basketball captures, scored against their
-foreground masks (`<capture>_masks/<camera>/<frame>.png`; a connected component of at least PERSON_SHARE of the
-image is one person):
-- ../shared/data/real/panoptic_basketball (the default): Technicolor layout, 16 cameras, 20 frames, 320x180;
-  masks for every camera but 10;
-- ../shared/data/real/panoptic_basketball_video: Neural 3D Video layout, 31 cameras, 90 frames, 608x336; masks
-  for 27 cameras (not cam00, the parser's default held-out camera, so pass `--held-out cam20 --click-camera
-  cam13`, two cameras that see both people at most frames). `--downscale 2 --frame-count 30 --click-frame 15
-  --iterations 3750` trains it as the speed/accuracy benchmark's `panoptic-video` scene (304x168, frames 0-29).
-
-Two measurements:
-1. **The SAM backend on ground-truth frames** (no NeRF): one positive click per person per masked camera
-   per frame (SEGMENTER_FRAMES frames evenly spread), at the mask pixel deepest inside the person, decoded on
-   the backend's encoding of the real frame; mIoU and accuracy against that person's component, with the best of
-   the decoder's candidate masks and the grid's ceiling (the person's own mask cut to the embedding's cells)
-   beside them.
-2. **Through the rendered 4D embedding**: trains a preset with `ns-train` on the capture (camera
-   `--held-out` held out; or takes a trained run with `--config`), clicks each person in `--click-camera`
-   at `--click-frame` and runs `ns-gear-track` into the held-out camera at every frame time, once per
-   propagation ("box": the paper; "embedding": ours). The held-out camera's person is the component that
-   holds the projected click at the clicked time (else the nearest); at the other times, frame by frame,
-   the component that overlaps the previous frame's most (the ground truth is followed, not the
-   prediction). Reports mIoU / accuracy at the clicked time and t-mIoU / t-accuracy at the others, as the
-   paper's tracking table, and writes `overlay_person<k>_<propagation>.png`: held-out frames with the tracked
-   mask (red) and the person's true outline (green).
-
-    .venv/bin/python benchmarks/tracking_real.py --output outputs/tracking_real
-
-Prints a markdown table and writes it to `<output>/tracking_real.md`.
-"""
+"""Free-viewpoint tracking (Sec 4.5) on real video (CMU Panoptic basketball, scored against its foreground masks;
+a mask component of at least PERSON_SHARE of the image is one person): first the SAM backend alone on the ground-truth
+frames (one click per person, best candidate mask, the grid's ceiling), then through the rendered 4D embedding: trains
+a preset (or takes ``--config``), clicks each person in ``--click-camera`` at ``--click-frame`` and runs
+``ns-gear-track`` into the held-out camera at every frame, once per propagation; mIoU / Acc. and t-mIoU / t-Acc., and
+``overlay_person<k>_<propagation>.png`` (tracked mask red, true outline green). Writes ``<output>/tracking_real.md``."""
 
 from __future__ import annotations
 
@@ -39,19 +15,18 @@ from pathlib import Path
 from typing import Dict, List, Literal, Optional, Tuple
 
 import numpy as np
-import tyro
 from PIL import Image
 from scipy import ndimage
 
+from benchmarks.common import REAL, mean, pct, read_mask
+from benchmarks.tracking import (PROPAGATIONS, deepest_pixel, mask_scores, per_time_table, summary_cells, track_click,
+                                 tracking_report, train_preset)
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import cells_per_pixel
 from gear_nerfstudio.tracking.metrics import accuracy, iou
 from gear_nerfstudio.tracking.propagation import mask_cells
-from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-from speed_accuracy import read_mask
-from tracking import PROPAGATIONS, mean, ns, pct, per_time_table, track_click, write_report
 
-CAPTURE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "panoptic_basketball"
+CAPTURE = REAL / "panoptic_basketball"
 PERSON_SHARE = 1000 / (320 * 180)
 """Smallest mask component counted as a person, as a share of the image (at 320x180 the ball is 400-600 pixels,
 the people 1,300-13,000)."""
@@ -114,17 +89,12 @@ def shrink(mask: np.ndarray, factor: int) -> np.ndarray:
     return np.asarray(Image.fromarray(mask).resize((width // factor, height // factor), Image.NEAREST))
 
 
-def deepest_pixel(mask: np.ndarray) -> Tuple[float, float]:
-    """The pixel centre (x, y) deepest inside a mask."""
-    row, col = np.unravel_index(int(np.argmax(ndimage.distance_transform_edt(mask))), mask.shape)
-    return col + 0.5, row + 0.5
-
-
 @dataclasses.dataclass
-class RealTrackingBenchmark:
+class TrackingReal:
+    """Score the SAM backend on a capture's frames, then tracking through a run trained on it."""
+
     output: Path = Path("outputs/tracking_real")
     capture: Path = CAPTURE
-    method: str = "gear-nerf-small"
     iterations: int = 3000
     seed: int = 42
     """Training seed (`--machine.seed`; nerfstudio's default is 42)."""
@@ -142,8 +112,6 @@ class RealTrackingBenchmark:
     """Train on the first this many frames (the dataparser's --frame-count); all by default."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Where `ns-train` trains (`--machine.device-type`); tracking uses the GPU when there is one."""
-    rays_per_batch: Optional[int] = None
-    """Training rays per iteration; the preset's by default."""
     min_views: Optional[int] = None
     """`ns-gear-track --min-views`; its default when None."""
     train_options: str = ""
@@ -198,16 +166,10 @@ class RealTrackingBenchmark:
                 scores, truth = score(folder, summary, held_out, click_time)
                 write_overlay(self.output / f"overlay_person{index}_{propagation}.png", overlay_frames, folder, summary,
                               truth)  # fmt: skip
-                at_click = [s for t, s in scores.items() if t == click_time]
-                other = [s for t, s in scores.items() if t != click_time]
-                lines.append(
-                    f"| {index} (click {x:.1f}, {y:.1f}) | {propagation} | "
-                    + " | ".join(pct(mean(values, k)) for values in (at_click, other) for k in (0, 1))
-                    + " |"
-                )
+                lines.append(f"| {index} (click {x:.1f}, {y:.1f}) | {propagation} | {summary_cells(scores, click_time)} |")
                 details += per_time_table(f"person {index}, {propagation}", summary["masks"], scores, 3)
         tracked = time.time()
-        write_report(
+        tracking_report(
             self.output / "tracking_real.md", lines + ([""] if refusals else []) + refusals, details,
             f"Segmenter on frames {segmented - started:.0f} s, training {trained - segmented:.0f} s (0 when "
             f"--config is given), tracking ({len(clicked_people) * len(PROPAGATIONS)} ns-gear-track runs) "
@@ -257,20 +219,12 @@ class RealTrackingBenchmark:
         return "\n".join(rows)
 
     def train(self, capture: Capture) -> Path:
-        runs = self.output / "runs"
-        runs.mkdir(parents=True, exist_ok=True)
-        option = "--pipeline.datamanager.train-num-rays-per-batch"
-        rays = [] if self.rays_per_batch is None else [option, str(self.rays_per_batch)]
-        ns(
-            "ns-train", self.method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp",
-            "run", "--max-num-iterations", str(self.iterations), *schedule_options(self.iterations),
-            "--machine.device-type", self.device, "--machine.seed", str(self.seed), "--vis", "tensorboard", *rays,
-            *shlex.split(self.train_options),
-            "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
+        options = [
+            *shlex.split(self.train_options), "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
             *capture.dataparser(self.held_out, self.downscale, self.frame_count),
-            "--cache-dir", str(self.output / "frames"), log=runs / "train.log",
-        )  # fmt: skip
-        return runs / "tracking" / self.method / "run" / "config.yml"
+            "--cache-dir", str(self.output / "frames"),
+        ]  # fmt: skip
+        return train_preset(self.output, self.iterations, self.seed, self.device, options)
 
 
 def refusal(log: Path) -> str:
@@ -298,7 +252,7 @@ def score(
     for record in summary["masks"]:
         predicted = np.asarray(Image.open(folder / record["mask"])) > 0
         target = person[round(record["time"] * (frames - 1))]
-        scores[record["time"]] = (iou(predicted, target), accuracy(predicted, target))
+        scores[record["time"]] = mask_scores(predicted, target)
     return scores, person
 
 
@@ -320,6 +274,3 @@ def write_overlay(
         tiles.append(tile.astype(np.uint8))
     Image.fromarray(np.concatenate(tiles, axis=1)).save(path)
 
-
-if __name__ == "__main__":
-    tyro.cli(RealTrackingBenchmark).main()

@@ -2,7 +2,7 @@
 (../shared/data/real/n3d_flame_steak_frame0, its calibration stripped; one frame each, made into short videos whose
 brightness marks the instant), starting at known instants, with audio tracks the test makes (one noise recording,
 each camera's track starting at its own instant, whole and sub-frame). One processed scene is shared by the tests
-of this module. The 31-camera Panoptic capture is measured by `benchmarks/process_accuracy.py` (it needs every
+of this module. The 31-camera Panoptic capture is measured by `python -m benchmarks process-accuracy` (it needs every
 camera of the dome and instants spread over the take: about a minute here)."""
 
 from __future__ import annotations

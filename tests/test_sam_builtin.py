@@ -274,7 +274,7 @@ def test_a_box_around_a_person_and_the_wall_beside_them_gives_the_person(backend
 
 def test_the_features_alone_are_ranked_beside_the_cue(backend):
     """A render with a floater: the viewer's wide view (64 x 43, as in tracking_real.md) of the synthetic scene's
-    model trained by `benchmarks/tracking.py --seed 1`, at frame 0, where a blob of the floor's colour hangs below a
+    model trained by `python -m benchmarks tracking --seed 1`, at frame 0, where a floor-coloured blob hangs below a
     sphere at the sphere's depth (recorded: its cells' hand-made features and depth, and the sphere's true mask). With
     the cue the sphere's region takes the blob, and with only the cue's candidates the mask had IoU 0.32; the features
     alone tell the blob by its colour, and their region, whose outline is in front of what surrounds it, comes

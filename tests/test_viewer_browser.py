@@ -410,7 +410,7 @@ def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, bro
     assert max_res == still_resolution(speed) and rate == round(moving_rate(speed), 1), chosen.group(0)
     assert by_label(driver, "Max res", "input").get_attribute("value") == str(max_res)  # not nerfstudio's 512
     # The rate follows the speed measured under this machine's load (the browser's software WebGL shares the CPU):
-    # printed, not asserted, as speed is measured by the benchmark (benchmarks/render_speed.py).
+    # printed, not asserted, as speed is measured by the benchmark (python -m benchmarks render-speed).
     print(f"measured {speed:,.0f} pixels per second: 'Max res' {max_res}, {rate} frames per second while moving")
 
     # The 3D view's canvas: the narrowest large one (the GUI panel sits beside it).
