@@ -49,19 +49,25 @@ def lookup(plane: wp.array(dtype=Any), start: int, size: int, r0: int, r1: int, 
 
 
 @wp.func
-def spread(plane: wp.array(dtype=Any), grad: wp.array(dtype=Any), start: int, size: int, r0: int, r1: int,
-           rw: float, c0: int, c1: int, cw: float, g: Any):
-    """Backward of ``lookup`` for the value's gradient g: adds it to the four corners of ``grad`` and returns the
-    derivatives with respect to the column and row indices."""
+def scatter(grad: wp.array(dtype=Any), start: int, size: int, r0: int, r1: int, rw: float, c0: int, c1: int,
+            cw: float, g: Any):
+    """Backward of ``lookup`` with respect to the plane: adds the value's gradient g to the four corners of
+    ``grad`` (on the CPU, where Warp runs a launch's samples one after the other, an atomic add is a plain add)."""
     low, high = start + r0 * size, start + r1 * size
-    p00, p01, p10, p11 = plane[low + c0], plane[low + c1], plane[high + c0], plane[high + c1]
     wp.atomic_add(grad, low + c0, ((1.0 - rw) * (1.0 - cw)) * g)
     wp.atomic_add(grad, low + c1, ((1.0 - rw) * cw) * g)
     wp.atomic_add(grad, high + c0, (rw * (1.0 - cw)) * g)
     wp.atomic_add(grad, high + c1, (rw * cw) * g)
-    d_column = wp.dot(g, (1.0 - rw) * (p01 - p00) + rw * (p11 - p10))
-    d_row = wp.dot(g, (1.0 - cw) * (p10 - p00) + cw * (p11 - p01))
-    return d_column, d_row
+
+
+@wp.func
+def slopes(plane: wp.array(dtype=Any), start: int, size: int, r0: int, r1: int, rw: float, c0: int, c1: int,
+           cw: float, g: Any):
+    """Backward of ``lookup`` with respect to the column and row indices for the value's gradient g, per channel
+    (their sums are the derivatives)."""
+    low, high = start + r0 * size, start + r1 * size
+    p00, p01, p10, p11 = plane[low + c0], plane[low + c1], plane[high + c0], plane[high + c1]
+    return wp.cw_mul(g, (1.0 - rw) * (p01 - p00) + rw * (p11 - p10)), wp.cw_mul(g, (1.0 - cw) * (p10 - p00) + cw * (p11 - p01))
 
 
 @functools.lru_cache(maxsize=None)
@@ -119,6 +125,7 @@ def kernels(channels: int):
         grad_out: wp.array2d(dtype=vec),
         grad_space: wp.array(dtype=vec),
         grad_time: wp.array(dtype=vec),
+        coordinates: int,
         grad_x: wp.array2d(dtype=float),
         grad_t: wp.array(dtype=float),
     ):
@@ -127,10 +134,9 @@ def kernels(channels: int):
         height = layout[0, 3]
         t0, t1, tw, tin = cell(first_rows[gear] + t[n] * (rows[gear] - 1.0), height)
         num_resolutions = layout.shape[0]
-        d_x, d_y, d_z, d_t = float(0.0), float(0.0), float(0.0), float(0.0)
+        d_x, d_y, d_z, d_t = vec(), vec(), vec(), vec()
         for r in range(num_resolutions):
             size, space_start, time_start = layout[r, 0], layout[r, 1], layout[r, 2]
-            scale = 0.5 * float(size - 1)
             x0, x1, xw, xin = cell(unnormalise(x[n, 0], size), size)
             y0, y1, yw, yin = cell(unnormalise(x[n, 1], size), size)
             z0, z1, zw, zin = cell(unnormalise(x[n, 2], size), size)
@@ -143,20 +149,32 @@ def kernels(channels: int):
             k2 = lookup(time, k2_start, size, t0, t1, tw, y0, y1, yw)
             k3 = lookup(time, k3_start, size, t0, t1, tw, x0, x1, xw)
             g1, g2, g3 = grad_out[n, r], grad_out[n, num_resolutions + r], grad_out[n, 2 * num_resolutions + r]
-            dx1, dy1 = spread(space, grad_space, space_start, size, y0, y1, yw, x0, x1, xw, wp.cw_mul(g1, k1))
-            dx2, dz2 = spread(space, grad_space, h2_start, size, z0, z1, zw, x0, x1, xw, wp.cw_mul(g2, k2))
-            dy3, dz3 = spread(space, grad_space, h3_start, size, z0, z1, zw, y0, y1, yw, wp.cw_mul(g3, k3))
-            dz1, dt1 = spread(time, grad_time, time_start, size, t0, t1, tw, z0, z1, zw, wp.cw_mul(g1, h1))
-            dy2, dt2 = spread(time, grad_time, k2_start, size, t0, t1, tw, y0, y1, yw, wp.cw_mul(g2, h2))
-            dx3, dt3 = spread(time, grad_time, k3_start, size, t0, t1, tw, x0, x1, xw, wp.cw_mul(g3, h3))
-            d_x += (dx1 + dx2 + dx3) * xin * scale
-            d_y += (dy1 + dy3 + dy2) * yin * scale
-            d_z += (dz2 + dz3 + dz1) * zin * scale
-            d_t += dt1 + dt2 + dt3
-        grad_x[n, 0] = d_x
-        grad_x[n, 1] = d_y
-        grad_x[n, 2] = d_z
-        grad_t[n] = d_t * tin * (rows[gear] - 1.0)
+            gh1, gh2, gh3 = wp.cw_mul(g1, k1), wp.cw_mul(g2, k2), wp.cw_mul(g3, k3)
+            gk1, gk2, gk3 = wp.cw_mul(g1, h1), wp.cw_mul(g2, h2), wp.cw_mul(g3, h3)
+            scatter(grad_space, space_start, size, y0, y1, yw, x0, x1, xw, gh1)
+            scatter(grad_space, h2_start, size, z0, z1, zw, x0, x1, xw, gh2)
+            scatter(grad_space, h3_start, size, z0, z1, zw, y0, y1, yw, gh3)
+            scatter(grad_time, time_start, size, t0, t1, tw, z0, z1, zw, gk1)
+            scatter(grad_time, k2_start, size, t0, t1, tw, y0, y1, yw, gk2)
+            scatter(grad_time, k3_start, size, t0, t1, tw, x0, x1, xw, gk3)
+            if coordinates != 0:
+                scale = 0.5 * float(size - 1)
+                dx1, dy1 = slopes(space, space_start, size, y0, y1, yw, x0, x1, xw, gh1)
+                dx2, dz2 = slopes(space, h2_start, size, z0, z1, zw, x0, x1, xw, gh2)
+                dy3, dz3 = slopes(space, h3_start, size, z0, z1, zw, y0, y1, yw, gh3)
+                dz1, dt1 = slopes(time, time_start, size, t0, t1, tw, z0, z1, zw, gk1)
+                dy2, dt2 = slopes(time, k2_start, size, t0, t1, tw, y0, y1, yw, gk2)
+                dx3, dt3 = slopes(time, k3_start, size, t0, t1, tw, x0, x1, xw, gk3)
+                d_x += (xin * scale) * (dx1 + dx2 + dx3)
+                d_y += (yin * scale) * (dy1 + dy2 + dy3)
+                d_z += (zin * scale) * (dz1 + dz2 + dz3)
+                d_t += dt1 + dt2 + dt3
+        if coordinates != 0:
+            ones = vec(1.0)
+            grad_x[n, 0] = wp.dot(d_x, ones)
+            grad_x[n, 1] = wp.dot(d_y, ones)
+            grad_x[n, 2] = wp.dot(d_z, ones)
+            grad_t[n] = wp.dot(d_t, ones) * tin * (rows[gear] - 1.0)
 
     return forward, backward
 
@@ -181,16 +199,17 @@ class PlaneProducts(torch.autograd.Function):
         grad_out = grad_out.contiguous().view(x.shape[0], 3 * layout.shape[0], -1)
         grad_space, grad_time = torch.zeros_like(space), torch.zeros_like(time)
         grad_x, grad_t = torch.zeros_like(x), torch.zeros_like(t)
+        coordinates = int(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
         launch(backward, x, t, levels, space, time, layout, first_rows, rows, grad_out, grad_space, grad_time,
-               grad_x, grad_t)
+               coordinates, grad_x, grad_t)
         return grad_x, grad_t, None, None, None, None, grad_space, grad_time
 
 
-def launch(kernel: wp.Kernel, x: Tensor, *args: Tensor) -> None:
+def launch(kernel: wp.Kernel, x: Tensor, *args) -> None:
     """Launch ``kernel`` over the samples of x on x's device, the tensors as Warp views (no copy) of the kernel's
     argument types."""
     inputs = [
-        wp.from_torch(value, dtype=arg.type.dtype, requires_grad=False)
+        wp.from_torch(value, dtype=arg.type.dtype, requires_grad=False) if isinstance(value, Tensor) else value
         for arg, value in zip(kernel.adj.args, (x, *args))
     ]
     wp.launch(kernel, dim=x.shape[0], inputs=inputs, device=wp.device_from_torch(x.device))
