@@ -43,8 +43,8 @@ def lookup(plane: wp.array(dtype=Any), start: int, size: int, r0: int, r1: int, 
     """Bilinear value (C channels) of a plane of rows of ``size`` cells beginning at ``start`` in a buffer, between
     rows r0, r1 and columns c0, c1 with weights rw, cw of r1, c1."""
     low, high = start + r0 * size, start + r1 * size
-    return (1.0 - rw) * ((1.0 - cw) * plane[low + c0] + cw * plane[low + c1]) + rw * (
-        (1.0 - cw) * plane[high + c0] + cw * plane[high + c1]
+    return ((1.0 - rw) * (1.0 - cw)) * plane[low + c0] + ((1.0 - rw) * cw) * plane[low + c1] + (
+        (rw * (1.0 - cw)) * plane[high + c0] + (rw * cw) * plane[high + c1]
     )
 
 
