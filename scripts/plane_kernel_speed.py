@@ -18,12 +18,15 @@ from gear_nerfstudio.model.gear_model import psnr
 KINDS = ("torch", "warp")
 
 
-def best(function, kinds_field, repeats: int):
-    """{kind: (best CPU seconds, last result)} of ``function`` with each plane kernel, the kinds interleaved."""
+def best(function, model: torch.nn.Module, repeats: int):
+    """{kind: (best CPU seconds, last result)} of ``function`` with each plane kernel in the model's fields (radiance
+    field and proposal networks), the kinds interleaved."""
     results = {}
     for _ in range(repeats):
         for kind in KINDS:
-            kinds_field.plane_kernel = kind
+            for module in model.modules():
+                if hasattr(module, "plane_kernel"):
+                    module.plane_kernel = kind
             start = time.process_time()
             result = function()
             seconds = time.process_time() - start
@@ -58,16 +61,17 @@ def main() -> None:
     with torch.no_grad():
         forward = best(lambda: field.gear_features(x, t, levels), field, args.repeats)
     backward = best(forward_backward, field, args.repeats)
-    renders = best(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], field, args.repeats)
-    print(f"lookups of one chunk: {len(x)} samples; frame {args.frame}: {rays.shape.numel()} pixels")
-    print("| path | lookups forward ms | lookups forward + backward ms | frame s | pixels / s | PSNR (dB) |")
+    renders = best(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], model, args.repeats)
+    print(f"radiance field lookups of one chunk: {len(x)} samples; frame {args.frame}: {rays.shape.numel()} pixels")
+    print("| path | field lookups forward ms | forward + backward ms | frame s | pixels / s | PSNR (dB) |")
     print("| --- | --- | --- | --- | --- | --- |")
     for kind in KINDS:
         seconds, image = renders[kind]
         print(f"| {kind} | {forward[kind][0] * 1e3:.2f} | {backward[kind][0] * 1e3:.2f} | {seconds:.2f} | "
               f"{rays.shape.numel() / seconds:,.0f} | {float(psnr(image, truth)):.3f} |")
-    print(f"PSNR of the kernel's frame against the torch path's: {float(psnr(renders['warp'][1], renders['torch'][1])):.1f}"
-          f" dB, largest difference {float((renders['warp'][1] - renders['torch'][1]).abs().max()):.2e}")
+    warp, reference = renders["warp"][1], renders["torch"][1]
+    print(f"PSNR of the kernel's frame against the torch path's: {float(psnr(warp, reference)):.1f} dB, largest "
+          f"difference {float((warp - reference).abs().max()):.2e}")
 
     trainer_config.load_dir = args.config.parent / "nerfstudio_models"
     trainer_config.output_dir = Path("/tmp/plane_kernel_speed")  # the run folder is never written
@@ -83,7 +87,7 @@ def main() -> None:
             step += 1
 
     train()  # warm-up
-    rates = best(train, trainer.pipeline.model.field, args.repeats)
+    rates = best(train, trainer.pipeline.model, args.repeats)
     print("| path | training iterations / s |\n| --- | --- |")
     for kind in KINDS:
         print(f"| {kind} | {args.train_iterations / rates[kind][0]:.2f} |")

@@ -8,6 +8,8 @@ import torch
 
 from gear_nerfstudio.fields.gear_field import GearField, sample_points
 from gear_nerfstudio.fields.plane_kernel import plane_products
+from gear_nerfstudio.fields.proposal_field import ProposalDensityField
+from tests.test_gear_model import make_model, make_rays
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -96,6 +98,42 @@ def test_density_and_outputs_match():
     assert_close(outputs["warp"][0], outputs["torch"][0], "density")
     for name, value in outputs["torch"][1].items():
         assert_close(outputs["warp"][1][name], value, name.value)
+
+
+@pytest.mark.parametrize("time_resolution", [1, 5])
+def test_proposal_field_matches_torch(time_resolution):
+    """The proposal networks' planes (one gear, one resolution, no frame rows): same features and gradients."""
+    torch.manual_seed(0)
+    field = ProposalDensityField(AABB, resolution=6, time_resolution=time_resolution, feature_dim=4)
+    with torch.no_grad():
+        for plane in [*field.space_planes.planes, *field.time_planes.planes]:
+            plane.uniform_(-1.0, 1.0)
+    x, t, _ = samples()
+    results = {}
+    for kind in ("torch", "warp"):
+        field.plane_kernel = kind
+        xk, tk = x.clone().requires_grad_(), t.clone().requires_grad_()
+        features = field.features(xk, tk)
+        (features * torch.randn(features.shape, generator=torch.Generator().manual_seed(2))).sum().backward()
+        planes = [p.grad.clone() for p in field.parameters() if p.grad is not None]
+        results[kind] = [features.detach(), xk.grad, tk.grad, *planes]
+        field.zero_grad(set_to_none=True)
+    assert len(results["warp"]) == len(results["torch"]) == 5  # features, x, t, the two planes (not the decoder)
+    for what, actual, expected in zip(["features", "d/dx", "d/dt", "d/dh", "d/dk"], results["warp"], results["torch"]):
+        assert_close(actual, expected, what)
+
+
+def test_model_renders_the_same():
+    """The model with the kernel (radiance field and proposal networks) renders what it renders with torch."""
+    outputs = {}
+    for kind in ("torch", "warp"):
+        model = make_model(base_sampler="proposal", num_proposal_samples=(16,), proposal_resolutions=(8,),
+                           plane_kernel=kind)
+        model.eval()
+        with torch.no_grad():
+            outputs[kind] = model(make_rays())
+    for name in ("rgb", "depth", "accumulation", "sam"):
+        assert_close(outputs["warp"][name], outputs["torch"][name], name)
 
 
 def test_plane_products_needs_matching_planes():

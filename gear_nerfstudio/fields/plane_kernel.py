@@ -1,12 +1,13 @@
-"""The field's plane lookups fused in one Warp kernel, forward and backward, for CPU and CUDA alike.
+"""The fields' plane lookups fused in one Warp kernel, forward and backward, for CPU and CUDA alike.
 
-In one pass over the samples, for each sample of gear level p, each plane j and each resolution it writes h_j(x) ⊙ k_j^p(x, t) (Eq 3), bilinear
-lookups with ``align_corners=True`` and border padding as in ``planes.bilinear``, into the columns that
-B = [B_1 B_2 B_3] reads (plane-major, then resolution, then channel), so f = products @ B^T sums the planes and the
-resolutions in one matrix product. No feature tensor per plane is made: the kernel reads the C channels of a corner
-as one vector (planes channels-last). The backward kernel accumulates the planes' gradients and, like
-``grid_sample``, the positions' and times' (zero where a coordinate is clamped to the border). The space-time planes
-are those of ``GearField.stacked_time_planes``: gear p's row at time t is ``first_rows[p - 1] + t (rows[p - 1] - 1)``.
+In one pass over the samples, for each sample of gear level p, each plane j and each resolution it writes
+h_j(x) ⊙ k_j^p(x, t) (Eq 3), bilinear lookups with ``align_corners=True`` and border padding as in
+``planes.bilinear``, into the columns that B = [B_1 B_2 B_3] reads (plane-major, then resolution, then channel), so
+f = products @ B^T sums the planes and the resolutions in one matrix product. No feature tensor per plane is made:
+the kernel reads the C channels of a corner as one vector (planes channels-last). The backward kernel accumulates the
+planes' gradients and, like ``grid_sample``, the positions' and times' (zero where a coordinate is clamped to the
+border). The space-time planes are those of ``GearField.stacked_time_planes``, gear p's row at time t being
+``first_rows[p - 1] + t (rows[p - 1] - 1)``; the proposal networks' are one gear from row 0.
 """
 
 import functools
@@ -67,7 +68,8 @@ def slopes(plane: wp.array(dtype=Any), start: int, size: int, r0: int, r1: int, 
     (their sums are the derivatives)."""
     low, high = start + r0 * size, start + r1 * size
     p00, p01, p10, p11 = plane[low + c0], plane[low + c1], plane[high + c0], plane[high + c1]
-    return wp.cw_mul(g, (1.0 - rw) * (p01 - p00) + rw * (p11 - p10)), wp.cw_mul(g, (1.0 - cw) * (p10 - p00) + cw * (p11 - p01))
+    d_column = wp.cw_mul(g, (1.0 - rw) * (p01 - p00) + rw * (p11 - p10))
+    return d_column, wp.cw_mul(g, (1.0 - cw) * (p10 - p00) + cw * (p11 - p01))
 
 
 @functools.lru_cache(maxsize=None)

@@ -111,8 +111,8 @@ class GearNeRFModelConfig(ModelConfig):
     """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's
     initialisation, about exp(-1) = 0.37 (K-Planes)."""
     plane_kernel: Literal["torch", "warp"] = "torch"
-    """Plane lookups of the radiance field: "torch" (grid_sample per plane) or "warp" (one fused Warp kernel per
-    resolution, same values; needs the ``kernel`` extra: pip install .[kernel]). See benchmarks/results/plane_kernel.md."""
+    """Plane lookups of the radiance field and the proposal networks: "torch" (grid_sample per plane) or "warp" (one
+    fused Warp kernel, same values; needs the ``kernel`` extra). See benchmarks/results/plane_kernel.md."""
     sam_head_dim: Optional[int] = 32
     """SAM embedding dimension per sample before the learned lift to sam_dim; None predicts sam_dim."""
     num_samples: int = 64
@@ -294,6 +294,7 @@ class GearNeRFModel(Model):
                         time_resolution=time_resolution,
                         feature_dim=config.proposal_feature_dim,
                         spatial_distortion=contraction,
+                        plane_kernel=config.plane_kernel,
                     )
                 )
 
