@@ -208,13 +208,14 @@ class PlaneProducts(torch.autograd.Function):
 
 
 def launch(kernel: wp.Kernel, x: Tensor, *args) -> None:
-    """Launch ``kernel`` over the samples of x on x's device, the tensors as Warp views (no copy) of the kernel's
-    argument types."""
+    """Launch ``kernel`` over the samples of x on x's device (on CUDA in torch's current stream), the tensors as Warp
+    views (no copy) of the kernel's argument types."""
     inputs = [
         wp.from_torch(value, dtype=arg.type.dtype, requires_grad=False) if isinstance(value, Tensor) else value
         for arg, value in zip(kernel.adj.args, (x, *args))
     ]
-    wp.launch(kernel, dim=x.shape[0], inputs=inputs, device=wp.device_from_torch(x.device))
+    stream = wp.stream_from_torch(x.device) if x.is_cuda else None
+    wp.launch(kernel, dim=x.shape[0], inputs=inputs, device=wp.device_from_torch(x.device), stream=stream)
 
 
 def plane_products(
