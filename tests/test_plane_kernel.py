@@ -136,6 +136,15 @@ def test_model_renders_the_same():
         assert_close(outputs["warp"][name], outputs["torch"][name], name)
 
 
+def test_no_samples():
+    field = random_field((4,))
+    field.eval()
+    features, x_grad, t_grad, grads = features_and_grads(field, "warp", torch.zeros(0, 3), torch.zeros(0, 1),
+                                                         torch.ones(0, dtype=torch.long))
+    assert features.shape == (0, 4) and x_grad.shape == (0, 3) and t_grad.shape == (0, 1)
+    assert all(not grad.any() for grad in grads.values())
+
+
 def test_plane_products_needs_matching_planes():
     planes = [torch.zeros(3, 2, 4, 4)]
     with pytest.raises(ValueError, match="one space-time plane per spatial plane"):

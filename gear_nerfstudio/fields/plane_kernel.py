@@ -198,7 +198,7 @@ class PlaneProducts(torch.autograd.Function):
     def backward(ctx, grad_out):
         x, t, levels, first_rows, rows, layout, space, time = ctx.saved_tensors
         _, backward = kernels(space.shape[-1])
-        grad_out = grad_out.contiguous().view(x.shape[0], 3 * layout.shape[0], -1)
+        grad_out = grad_out.contiguous().view(x.shape[0], 3 * layout.shape[0], space.shape[-1])
         grad_space, grad_time = torch.zeros_like(space), torch.zeros_like(time)
         grad_x, grad_t = torch.zeros_like(x), torch.zeros_like(t)
         coordinates = int(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])

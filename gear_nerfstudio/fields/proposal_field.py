@@ -78,7 +78,8 @@ class ProposalDensityField(nn.Module):
 
             rows = torch.tensor([float(self.time_planes.planes[0].shape[-2])], device=x.device)
             levels = torch.ones(len(x), dtype=torch.int32, device=x.device)
-            return plane_products(x, t[:, 0], levels, self.space_planes.planes, self.time_planes.planes, rows * 0, rows)
+            space, time = self.space_planes.planes, self.time_planes.planes
+            return plane_products(x, t[:, 0], levels, space, time, torch.zeros_like(rows), rows)
         return flat_features(self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t)))
 
     def regularisers(self) -> Dict[str, Tensor]:
