@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from enum import Enum
-from typing import Dict, List, Optional, Sequence, Tuple, Union
+from typing import Dict, List, Literal, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -122,6 +122,8 @@ class GearField(Field):
         initial_density: density (per scene unit) the field starts from everywhere: the density MLP's output bias
             is set to log(initial_density) + 1; None keeps PyTorch's initialisation (raw outputs near 0, so sigma
             near exp(-1)).
+        plane_kernel: how ``gear_features`` looks up the planes: "torch" (``grid_sample``) or "warp" (the fused
+            kernel of ``plane_kernel.py``, same values).
     """
 
     def __init__(
@@ -146,10 +148,14 @@ class GearField(Field):
         num_cameras: int = 0,
         trained_cameras: Sequence[int] = (),
         initial_density: Optional[float] = None,
+        plane_kernel: Literal["torch", "warp"] = "torch",
     ) -> None:
         super().__init__()
         if num_gears < 1:
             raise ValueError(f"num_gears must be >= 1, got {num_gears}")
+        if plane_kernel not in ("torch", "warp"):
+            raise ValueError(f"plane_kernel must be 'torch' or 'warp', got {plane_kernel!r}")
+        self.plane_kernel = plane_kernel
         if initial_density is not None and not initial_density > 0:
             raise ValueError(f"initial_density must be > 0, got {initial_density}")
         self.register_buffer("aabb", aabb.clone().float())
@@ -255,6 +261,11 @@ class GearField(Field):
         # each stacked gear takes its rows and two frame rows; its first row follows the frame row above it
         block = (self.gear_rows + 2) * stacked
         first_rows = block.cumsum(0) - block + 1
+        if self.plane_kernel == "warp":
+            from gear_nerfstudio.fields.plane_kernel import plane_products
+
+            products = plane_products(x, t[:, 0], levels, self.space_planes.planes, planes, first_rows, self.gear_rows)
+            return products @ self.basis.weight.T
         row = first_rows[levels - 1] + t[:, 0] * (self.gear_rows[levels - 1] - 1)
         y = row * (2.0 / (planes[0].shape[-2] - 1)) - 1.0
         time = torch.stack([torch.stack([x[:, axis], y], dim=-1) for axis in TIME_PLANE_AXES])

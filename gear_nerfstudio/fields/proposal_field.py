@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Dict, Optional
+from typing import Dict, Literal, Optional
 
 import torch
 from jaxtyping import Float
@@ -34,6 +34,7 @@ class ProposalDensityField(nn.Module):
         time_resolution: temporal resolution of the space-time planes.
         feature_dim: plane channels.
         spatial_distortion: contraction for unbounded scenes.
+        plane_kernel: plane lookups by "torch" (``grid_sample``) or "warp" (``plane_kernel.py``, same values).
     """
 
     def __init__(
@@ -43,8 +44,12 @@ class ProposalDensityField(nn.Module):
         time_resolution: int,
         feature_dim: int = 8,
         spatial_distortion: Optional[SpatialDistortion] = None,
+        plane_kernel: Literal["torch", "warp"] = "torch",
     ) -> None:
         super().__init__()
+        if plane_kernel not in ("torch", "warp"):
+            raise ValueError(f"plane_kernel must be 'torch' or 'warp', got {plane_kernel!r}")
+        self.plane_kernel = plane_kernel
         self.register_buffer("aabb", aabb.clone().float())
         self.spatial_distortion = spatial_distortion
         self.space_planes = PlaneTriple(feature_dim, [(resolution, resolution)], init_space_plane)
@@ -62,10 +67,20 @@ class ProposalDensityField(nn.Module):
         if self.seen_space is not None and not self.training:
             inside = inside & self.seen_space(x)
         t = broadcast_times(times, shape, positions).reshape(-1, 1)
-        products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
-        raw = self.decoder(flat_features(products))
+        raw = self.decoder(self.features(x, t))
         density = torch.where(inside[:, None], density_activation(raw), torch.zeros_like(raw))
         return density.reshape(*shape, 1)
+
+    def features(self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N 3C"]:
+        """h_j ⊙ k_j of the three planes at normalised positions and times, side by side (plane-major)."""
+        if self.plane_kernel == "warp":
+            from gear_nerfstudio.fields.plane_kernel import plane_products
+
+            rows = torch.tensor([float(self.time_planes.planes[0].shape[-2])], device=x.device)
+            levels = torch.ones(len(x), dtype=torch.int32, device=x.device)
+            space, time = self.space_planes.planes, self.time_planes.planes
+            return plane_products(x, t[:, 0], levels, space, time, torch.zeros_like(rows), rows)
+        return flat_features(self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t)))
 
     def regularisers(self) -> Dict[str, Tensor]:
         """K-Planes regularisers on the proposal planes."""

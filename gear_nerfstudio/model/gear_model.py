@@ -110,6 +110,9 @@ class GearNeRFModelConfig(ModelConfig):
     initial_density: Optional[float] = None
     """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's
     initialisation, about exp(-1) = 0.37 (K-Planes)."""
+    plane_kernel: Literal["torch", "warp"] = "torch"
+    """Plane lookups of the radiance field and the proposal networks: "torch" (grid_sample per plane) or "warp" (one
+    fused Warp kernel, same values; needs the ``kernel`` extra). See benchmarks/results/plane_kernel.md."""
     sam_head_dim: Optional[int] = 32
     """SAM embedding dimension per sample before the learned lift to sam_dim; None predicts sam_dim."""
     num_samples: int = 64
@@ -271,6 +274,7 @@ class GearNeRFModel(Model):
             num_cameras=len(metadata.get("camera_names", ())),
             trained_cameras=sorted(set(torch.as_tensor(metadata.get("camera_ids", [])).tolist())),
             initial_density=config.initial_density,
+            plane_kernel=config.plane_kernel,
         )
 
         self.proposal_networks = torch.nn.ModuleList()
@@ -290,6 +294,7 @@ class GearNeRFModel(Model):
                         time_resolution=time_resolution,
                         feature_dim=config.proposal_feature_dim,
                         spatial_distortion=contraction,
+                        plane_kernel=config.plane_kernel,
                     )
                 )
 

@@ -1,0 +1,156 @@
+"""The fused Warp plane kernel against the torch path (grid_sample): features f (Eq 3, 7) and their gradients with
+respect to the planes, B, the positions and the times, on the CPU."""
+
+import copy
+
+import pytest
+import torch
+
+from gear_nerfstudio.fields.gear_field import GearField, sample_points
+from gear_nerfstudio.fields.plane_kernel import plane_products
+from gear_nerfstudio.fields.proposal_field import ProposalDensityField
+from tests.test_gear_model import make_model, make_rays
+
+AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def random_field(resolutions, num_frames=6, time_resolutions=None, feature_dim=4) -> GearField:
+    """A field of 3 gears whose planes and B are random (the initial space-time planes are constant)."""
+    torch.manual_seed(0)
+    field = GearField(
+        AABB, num_frames=num_frames, num_gears=3, feature_dim=feature_dim, resolutions=resolutions,
+        gear_resolution=4, time_resolutions=time_resolutions,
+    )
+    with torch.no_grad():
+        for plane in [*field.space_planes.planes, *(p for triple in field.time_planes for p in triple.planes)]:
+            plane.uniform_(-1.0, 1.0)
+        field.basis.weight.normal_()
+    return field
+
+
+def samples(n: int = 400, seed: int = 1):
+    """Positions (some outside [-1, 1], some on the planes' borders and on cell edges), times (some on the first and
+    last frame) and gear levels."""
+    generator = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 3, generator=generator) * 2.4 - 1.2
+    x[:20, 0], x[20:40, 1], x[40:60, 2] = 1.0, -1.0, 0.0
+    x[60:70] = torch.tensor([-1.0, 1.0, -1.0])
+    t = torch.rand(n, 1, generator=generator)
+    t[:30], t[30:60] = 0.0, 1.0
+    levels = torch.randint(1, 4, (n,), generator=generator)
+    return x, t, levels
+
+
+def features_and_grads(field: GearField, kind: str, x, t, levels):
+    """f at (x, t) with the given plane lookups, and the gradients of a fixed random projection of f."""
+    field.plane_kernel = kind
+    x, t = x.clone().requires_grad_(), t.clone().requires_grad_()
+    features = field.gear_features(x, t, levels)
+    weights = torch.randn(features.shape, generator=torch.Generator().manual_seed(2))
+    (features * weights).sum().backward()
+    grads = {name: p.grad.clone() for name, p in field.named_parameters() if p.grad is not None}
+    field.zero_grad(set_to_none=True)
+    return features.detach(), x.grad, t.grad, grads
+
+
+def assert_close(actual, expected, what):
+    """Equal up to float32 rounding: 1e-5 of the largest magnitude."""
+    scale = expected.abs().max().clamp(min=1.0)
+    error = (actual - expected).abs().max() / scale
+    assert error < 1e-5, f"{what}: relative error {error:.2e}"
+
+
+@pytest.mark.parametrize(
+    "resolutions, time_resolutions", [((8, 16), None), ((5,), None), ((6, 12, 7), (1, 1, 1)), ((8,), (1, 3, 6))]
+)
+@pytest.mark.parametrize("training", [False, True])
+def test_kernel_matches_torch(resolutions, time_resolutions, training):
+    """Same f and gradients; in training the stacked planes hold the gears in use only (``gear_features``)."""
+    field = random_field(resolutions, time_resolutions=time_resolutions)
+    field.train(training)
+    x, t, levels = samples()
+    if training:
+        levels = levels.clamp(max=2)  # gear 3 unused: not in the stack
+    reference = copy.deepcopy(field)
+    expected = features_and_grads(reference, "torch", x, t, levels)
+    actual = features_and_grads(field, "warp", x, t, levels)
+    assert_close(actual[0], expected[0], "features")
+    assert_close(actual[1], expected[1], "d/dx")
+    assert_close(actual[2], expected[2], "d/dt")
+    assert actual[3].keys() == expected[3].keys()
+    for name in expected[3]:
+        assert_close(actual[3][name], expected[3][name], f"d/d{name}")
+    if training:
+        assert torch.equal(field.used_columns, reference.used_columns)
+
+
+def test_density_and_outputs_match():
+    """The whole field (density, colour, SAM embedding) is the same with either lookup."""
+    field = random_field((8, 16))
+    field.eval()
+    x, t, _ = samples(200)
+    points = sample_points(x * 0.9, t, torch.nn.functional.normalize(torch.randn(200, 3), dim=-1))
+    outputs = {}
+    for kind in ("torch", "warp"):
+        field.plane_kernel = kind
+        density, embedding = field.get_density(points)
+        outputs[kind] = (density, field.get_outputs(points, embedding))
+    assert_close(outputs["warp"][0], outputs["torch"][0], "density")
+    for name, value in outputs["torch"][1].items():
+        assert_close(outputs["warp"][1][name], value, name.value)
+
+
+@pytest.mark.parametrize("time_resolution", [1, 5])
+def test_proposal_field_matches_torch(time_resolution):
+    """The proposal networks' planes (one gear, one resolution, no frame rows): same features and gradients."""
+    torch.manual_seed(0)
+    field = ProposalDensityField(AABB, resolution=6, time_resolution=time_resolution, feature_dim=4)
+    with torch.no_grad():
+        for plane in [*field.space_planes.planes, *field.time_planes.planes]:
+            plane.uniform_(-1.0, 1.0)
+    x, t, _ = samples()
+    results = {}
+    for kind in ("torch", "warp"):
+        field.plane_kernel = kind
+        xk, tk = x.clone().requires_grad_(), t.clone().requires_grad_()
+        features = field.features(xk, tk)
+        (features * torch.randn(features.shape, generator=torch.Generator().manual_seed(2))).sum().backward()
+        planes = [p.grad.clone() for p in field.parameters() if p.grad is not None]
+        results[kind] = [features.detach(), xk.grad, tk.grad, *planes]
+        field.zero_grad(set_to_none=True)
+    assert len(results["warp"]) == len(results["torch"]) == 5  # features, x, t, the two planes (not the decoder)
+    for what, actual, expected in zip(["features", "d/dx", "d/dt", "d/dh", "d/dk"], results["warp"], results["torch"]):
+        assert_close(actual, expected, what)
+
+
+def test_model_renders_the_same():
+    """The model with the kernel (radiance field and proposal networks) renders what it renders with torch."""
+    outputs = {}
+    for kind in ("torch", "warp"):
+        model = make_model(base_sampler="proposal", num_proposal_samples=(16,), proposal_resolutions=(8,),
+                           plane_kernel=kind)
+        model.eval()
+        with torch.no_grad():
+            outputs[kind] = model(make_rays())
+    for name in ("rgb", "depth", "accumulation", "sam"):
+        assert_close(outputs["warp"][name], outputs["torch"][name], name)
+
+
+def test_no_samples():
+    field = random_field((4,))
+    field.eval()
+    features, x_grad, t_grad, grads = features_and_grads(field, "warp", torch.zeros(0, 3), torch.zeros(0, 1),
+                                                         torch.ones(0, dtype=torch.long))
+    assert features.shape == (0, 4) and x_grad.shape == (0, 3) and t_grad.shape == (0, 1)
+    assert all(not grad.any() for grad in grads.values())
+
+
+def test_plane_products_needs_matching_planes():
+    planes = [torch.zeros(3, 2, 4, 4)]
+    with pytest.raises(ValueError, match="one space-time plane per spatial plane"):
+        plane_products(torch.zeros(1, 3), torch.zeros(1), torch.ones(1), planes, [], torch.ones(1), torch.ones(1))
+
+
+def test_unknown_kernel_is_refused():
+    with pytest.raises(ValueError, match="plane_kernel must be"):
+        GearField(AABB, num_frames=2, num_gears=1, resolutions=(4,), plane_kernel="cuda")
