@@ -17,6 +17,7 @@ def subcommands():
     from benchmarks.footprint import Footprint
     from benchmarks.gear_masks import GearMasks
     from benchmarks.gpu_speed import GpuSpeed
+    from benchmarks.plane_kernel import PlaneKernel
     from benchmarks.process_accuracy import ProcessAccuracy
     from benchmarks.real_size_costs import RealSizeCosts
     from benchmarks.render_speed import RenderSpeed
@@ -28,7 +29,7 @@ def subcommands():
         "speed-accuracy": SpeedAccuracy, "compare-views": CompareViews, "tracking": Tracking,
         "tracking-real": TrackingReal, "render-speed": RenderSpeed, "gpu-speed": GpuSpeed,
         "real-size-costs": RealSizeCosts, "process-accuracy": ProcessAccuracy, "footprint": Footprint,
-        "gear-masks": GearMasks,
+        "gear-masks": GearMasks, "plane-kernel": PlaneKernel,
     }  # fmt: skip
     return Union[tuple(Annotated[kind, tyro.conf.subcommand(name=n)] for n, kind in named.items())]  # type: ignore
 

@@ -11,7 +11,7 @@ from benchmarks.common import gear_mask_counts
 from benchmarks.speed_accuracy import METHODS, method_overrides
 
 NAMES = ("speed-accuracy", "compare-views", "tracking", "tracking-real", "render-speed", "gpu-speed",
-         "real-size-costs", "process-accuracy", "footprint", "gear-masks")  # fmt: skip
+         "real-size-costs", "process-accuracy", "footprint", "gear-masks", "plane-kernel")  # fmt: skip
 
 
 @pytest.mark.parametrize("name", NAMES)
