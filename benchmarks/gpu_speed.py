@@ -62,7 +62,8 @@ from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_baseline
 from gear_nerfstudio.model import image_render
-from gear_nerfstudio.model.gear_model import evaluating, psnr
+from gear_nerfstudio.model.gear_model import evaluating
+from gear_nerfstudio.model.metrics import psnr
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from render_speed import set_render_counts
 

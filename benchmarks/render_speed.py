@@ -32,7 +32,7 @@ from PIL import Image
 from torch import Tensor
 from nerfstudio.utils.eval_utils import eval_setup
 
-from gear_nerfstudio.model.gear_model import psnr
+from gear_nerfstudio.model.metrics import psnr
 
 
 def timed(function, repeats: int):
