@@ -19,6 +19,7 @@ from gear_nerfstudio.fields.gear_function import gear_level
 from gear_nerfstudio.fields.planes import broadcast_times, normalize_positions
 from gear_nerfstudio.model.renderers import GearLevelRenderer, SamRenderer
 from gear_nerfstudio.model.sampling import GearSamples
+from gear_nerfstudio.model.split_sampler import SplitRaySamples
 
 OUTPUTS = frozenset({"rgb", "depth", "accumulation", "sam", "gear_level", "gear", "num_samples"})
 """Every output of a render."""
@@ -75,24 +76,27 @@ class GearRenderer(nn.Module):
             split_up = levels > 1
             levels[split_up] = gear_level(field.gear_function(x[split_up], t[split_up]), field.num_gears)
         density, embedding = field.normalised_density(x, t, inside, levels)
-        weights = ray_samples.get_weights(torch.where(split.valid[..., None], split.unpack(density), 0.0))
         geometry, features, levels = field.split_embedding(embedding)
-
-        index = self.visible(samples, weights) if request.sparse else None
+        # A sparse render needs the weights to choose its samples. Otherwise they come after the per-sample heads, as
+        # the field's outputs came before them: backward sums gradients in the order of the forward pass, so training
+        # stays the same to the last bit.
+        weights = self.weights(split, density) if request.sparse else None
+        index = None if weights is None else self.visible(split, weights)
         rays_of = split.ray_index if index is None else split.ray_index[index]
         codes = None if field.appearance is None else field.appearance(rays.metadata, len(rays))[rays_of]
         directions = split.pack(ray_samples.frustums.directions)
         points = sample_points(picked(positions, index), None, picked(directions, index), codes)
         colours = field.colour(points, picked(geometry, index))
-        accumulation = self.accumulation(weights=weights)
-        outputs = {
-            "rgb": self.rgb(rgb=split.unpack(scattered(colours, index, len(positions))), weights=weights),
-            "accumulation": accumulation,
-            "depth": self.depth(weights=weights, ray_samples=ray_samples),
-        }
-        if "sam" in names:
-            embeddings = scattered(field.sam_net(picked(features, index)), index, len(positions))
-            outputs["sam"] = field.lift_sam(self.sam(split, weights, embeddings), accumulation)
+        embeddings = field.sam_net(picked(features, index)) if "sam" in names else None
+        if weights is None:
+            weights = self.weights(split, density)
+
+        outputs = {"rgb": self.rgb(rgb=split.unpack(scattered(colours, index, len(positions))), weights=weights)}
+        outputs["accumulation"] = self.accumulation(weights=weights)
+        outputs["depth"] = self.depth(weights=weights, ray_samples=ray_samples)
+        if embeddings is not None:
+            rendered = self.sam(split, weights, scattered(embeddings, index, len(positions)))
+            outputs["sam"] = field.lift_sam(rendered, outputs["accumulation"])
         if "gear_level" in names or "gear" in names:
             outputs["gear_level"] = self.gear_level(split, weights, levels)
             outputs["gear"] = self.gear_image(outputs["gear_level"])
@@ -101,9 +105,13 @@ class GearRenderer(nn.Module):
         return outputs, weights
 
     @staticmethod
-    def visible(samples: GearSamples, weights: Float[Tensor, "rays max_samples 1"]) -> Int[Tensor, "visible"]:
+    def weights(split: SplitRaySamples, density: Float[Tensor, "packed 1"]) -> Float[Tensor, "rays max_samples 1"]:
+        """Eq 1's weights w_i of the split samples from their density (0 for the padding)."""
+        return split.ray_samples.get_weights(torch.where(split.valid[..., None], split.unpack(density), 0.0))
+
+    @staticmethod
+    def visible(split: SplitRaySamples, weights: Float[Tensor, "rays max_samples 1"]) -> Int[Tensor, "visible"]:
         """Packed indices of the samples whose weight reaches ``VISIBLE_WEIGHT``, and of each ray's last sample."""
-        split = samples.split
         visible = split.pack(weights)[:, 0] >= VISIBLE_WEIGHT
         visible[split.num_samples_per_ray.cumsum(0) - 1] = True
         return visible.nonzero()[:, 0]
