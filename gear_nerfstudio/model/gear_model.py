@@ -1,10 +1,11 @@
 """Gear-NeRF model for nerfstudio (Liu et al., CVPR 2024).
 
-Per batch of rays: base sampler (uniform, n = 64 in the paper, or a proposal network) -> gear level p of
-each base sample -> split sampler (Sec 4.4) -> GearField (Eq 3-7) -> renderers for colour (Eq 1),
-depth, accumulation, SAM features (Eq 8), gear level and samples per ray. Losses: Eq 2, Eq 9 and the
-K-Planes regularisers. The gear function g is a separate parameter group ("gear_field") that the
-radiance optimiser never sees; it is trained by the gear-update step (Sec 4.3, Eq 10-11).
+Per batch of rays, one forward pass: base samples (uniform, n = 64 in the paper, or a proposal network), the gear
+level p of each and the split sampler (Sec 4.4; ``sampling.GearSampler``) -> GearField (Eq 3-7) and renderers for
+colour (Eq 1), depth, accumulation, SAM features (Eq 8), gear level and samples per ray (``rendering.GearRenderer``).
+Full-image renders are sparse forward passes in chunks (``image_render``). Losses: Eq 2, Eq 9 and the K-Planes
+regularisers (``losses.GearLosses``); image metrics in ``metrics``. The gear function g is a separate parameter group
+("gear_field") that the radiance optimiser never sees; it is trained by the gear-update step (Sec 4.3, Eq 10-11).
 """
 
 from __future__ import annotations
