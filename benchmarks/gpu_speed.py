@@ -30,8 +30,9 @@ from benchmarks.render_speed import set_render_counts
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_baseline
-from gear_nerfstudio.model import image_render
-from gear_nerfstudio.model.gear_model import evaluating, psnr
+from gear_nerfstudio.model import sampling
+from gear_nerfstudio.model.gear_model import evaluating
+from gear_nerfstudio.model.metrics import psnr
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 METHODS = {"gear-nerf": gear_nerf, "gear-nerf-one-gear": gear_nerf, "gear-nerf-baseline": gear_nerf_baseline}
@@ -179,15 +180,15 @@ def patched(replacements: List[Tuple[Any, str, Callable[[Callable], Callable]]])
 
 
 def render_stages(run: Run, count: int) -> Dict[str, float]:
-    """Seconds per full-frame render spent in each stage of the render path (``image_render.render_rays``), each
+    """Seconds per full-frame render spent in each stage of the render path (``GearNeRFModel.get_outputs``), each
     call synchronised at both ends; nested stages (the proposal networks inside the base sampler, the plane features
     inside the field's density) are also counted in their parents."""
     model, field = run.model, run.model.field
     stages = [
-        (model, "sample_base", "base samples (proposal sampler)"),
+        (model.sampler.base, "forward", "base samples (proposal sampler)"),
         *[(net, "density_fn", "  proposal networks' density") for net in model.proposal_networks],
         (field, "gear_levels", "gear levels of the base samples"),
-        (image_render, "split_ray_samples", "split sampler (Sec 4.4)"),
+        (sampling, "split_ray_samples", "split sampler (Sec 4.4)"),
         (field.gear_function, "forward", "gear function g (Eq 4), every call (the gear levels' included)"),
         (field, "normalised_density", "field density"),
         (field, "gear_features", "  plane features f (Eq 3, 6-7)"),

@@ -16,7 +16,7 @@ import torch
 import tyro
 from nerfstudio.utils.eval_utils import eval_setup
 
-from gear_nerfstudio.model.gear_model import psnr
+from gear_nerfstudio.model.metrics import psnr
 
 KINDS = ("torch", "warp")
 

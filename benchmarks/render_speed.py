@@ -23,7 +23,7 @@ from PIL import Image
 from torch import Tensor
 
 from benchmarks.common import timed, write_report
-from gear_nerfstudio.model.gear_model import psnr
+from gear_nerfstudio.model.metrics import psnr
 
 
 def save_strip(path: Path, truth: Tensor, generic: Tensor, rendered: Tensor) -> None:

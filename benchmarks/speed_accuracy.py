@@ -631,7 +631,7 @@ def at_budget(run: Dict[str, Any], budget: float, clock: Clock) -> Optional[Dict
 
 
 def has_lpips() -> bool:
-    from gear_nerfstudio.model.gear_model import lpips_weights_path
+    from gear_nerfstudio.model.metrics import lpips_weights_path
 
     return lpips_weights_path().is_file()
 
@@ -654,7 +654,7 @@ def evaluate_checkpoints(
     import torch
     from nerfstudio.utils.eval_utils import eval_load_checkpoint, eval_setup
 
-    from gear_nerfstudio.model.gear_model import MIN_MSE
+    from gear_nerfstudio.model.metrics import MIN_MSE
     from gear_nerfstudio.model.moving_region import SUMS, region_scores
 
     def no_sam(config):

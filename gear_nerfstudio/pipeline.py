@@ -27,7 +27,8 @@ from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.gears.config import GearUpdateConfig
 from gear_nerfstudio.gears.schedule import GearUpdateState
 from gear_nerfstudio.gears.updater import GearUpdater
-from gear_nerfstudio.model.gear_model import MIN_MSE, GearNeRFModelConfig, near_layer_warning
+from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.model.metrics import MIN_MSE, near_layer_warning
 from gear_nerfstudio.model.moving_region import SUMS, EvalViews, region_scores
 from gear_nerfstudio.sam.config import BuiltinSamConfig, SamConfigChoice
 from gear_nerfstudio.sam.interface import SamBackend

@@ -9,7 +9,8 @@ from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.model_components.scene_colliders import AABBBoxCollider, NearFarCollider
 
 from gear_nerfstudio.errors import InputError
-from gear_nerfstudio.model.gear_model import GearNeRFModelConfig, lpips_weights_path, near_layer_warning
+from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.model.metrics import lpips_weights_path, near_layer_warning
 
 OUTPUT_KEYS = {"rgb", "depth", "accumulation", "sam", "gear_level", "gear", "num_samples"}
 METADATA = {"near": 0.5, "far": 4.5, "num_frames": 6, "unbounded": False}
@@ -186,10 +187,10 @@ def test_split_samples_are_the_base_samples_in_use_split_inside_their_own_interv
     force_gears_in_upper_half(model, 3)
     model.train()
     rays = model.collider(make_rays(64))
-    base, _, _ = model.sample_base(rays)
-    levels = model.field.gear_levels(base.frustums.get_positions(), base.times)
+    samples = model.sampler(rays, model.field.gear_levels)
+    base, levels, split = samples.base, samples.levels, samples.split
+    assert torch.equal(levels, model.field.gear_levels(base.frustums.get_positions(), base.times))  # at midpoints
     assert (levels == 1).any() and (levels == 3).any()
-    split = model.split_sampler(base, model.field.gear_levels)
     assert torch.equal(split.num_samples_per_ray, (2 ** (levels - 1)).sum(dim=1))
     parent_starts = base.frustums.starts[..., 0].gather(1, split.parent)
     parent_ends = base.frustums.ends[..., 0].gather(1, split.parent)
@@ -207,7 +208,7 @@ def test_evaluation_renders_start_at_the_near_plane():
     model = make_model()
     for mode in (model.train, model.eval):
         mode()
-        samples, _, _ = model.sample_base(model.collider(make_rays(16)))
+        samples = model.sampler(model.collider(make_rays(16)), model.field.gear_levels).base
         assert float(samples.frustums.starts.min()) >= METADATA["near"] - 1e-6
 
 
@@ -356,6 +357,6 @@ def test_render_sample_counts_apply_to_full_image_renders_only(base_sampler):
     with torch.no_grad():
         assert torch.equal(model(rays)["num_samples"], torch.full((40, 1), 12.0))
     if proposal:
-        assert model.base_sampler.num_proposal_samples_per_ray == (16, 8)
+        assert model.sampler.base.num_proposal_samples_per_ray == (16, 8)
         with pytest.raises(InputError, match="render-num-proposal-samples has 1 values but the model has 2"):
             make_model(base_sampler="proposal", num_proposal_samples=(16, 8), render_num_proposal_samples=(8,))

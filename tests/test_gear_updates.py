@@ -18,10 +18,11 @@ from nerfstudio.scripts.train import _set_random_seed
 
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
 from gear_nerfstudio.fields.gear_field import GearField
+from gear_nerfstudio.gears.config import GearUpdateConfig
 from gear_nerfstudio.gears.loss_maps import moving_patches, moving_pixels, patch_prompts, patches_to_pixels
 from gear_nerfstudio.gears.schedule import GearUpdateState, NoGearUpdates, describe_plan, planned_updates
 from gear_nerfstudio.gears.updater import GearUpdater
-from gear_nerfstudio.gears.upshift import level_targets, select_points, shift_gears, upshift_loss
+from gear_nerfstudio.gears.upshift import UpdatePoints, level_targets, select_points, shift_gears, upshift_loss
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_small
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
 
@@ -50,7 +51,8 @@ def test_upshift_loss_is_a_weighted_hinge_to_the_target_interval():
     weights = torch.tensor([1.0, 3.0, 2.0, 1.0])
     upshift = torch.tensor([True, True, False, False])
     expected = (0.25**2 * 1 + 0.0 * 3) / 4 + 2.0 * (0.25**2 * 2 + 0.0) / 3
-    loss = upshift_loss(g, targets, weights, upshift, stay_weight=2.0, num_gears=4, margin=0.25)
+    settings = GearUpdateConfig(stay_weight=2.0, margin=0.25)
+    loss = upshift_loss(g, targets, UpdatePoints(g, g, weights, upshift), 4, settings)
     assert torch.isclose(loss, torch.tensor(expected))
 
 
@@ -61,12 +63,15 @@ def test_s_static_is_a_weighted_mean_of_its_own_in_the_loss_and_in_the_point_dra
     upshift = torch.tensor([True, True, False, False, False, False])
     static = torch.tensor([False, False, False, False, True, True])  # targets 1: (-inf, 0.75]
     expected = (0.25**2 * 1) / 4 + 2.0 * (0.25**2 * 2) / 3 + 0.5 * (1.25**2 * 4) / 5
-    loss = upshift_loss(g, targets, weights, upshift, 2.0, 4, 0.25, static=static, static_weight=0.5)
+    points = UpdatePoints(g, g, weights, upshift, static=static)
+    loss = upshift_loss(g, targets, points, 4, GearUpdateConfig(stay_weight=2.0, margin=0.25, static_weight=0.5))
     assert torch.isclose(loss, torch.tensor(expected))
     # Each set is drawn on its own: a large S_static does not crowd out S_stay.
     weights = torch.ones(300)
     upshift, static = torch.arange(300) < 10, torch.arange(300) >= 20
-    index, _ = select_points(weights, upshift, 50, torch.Generator().manual_seed(0), static)
+    index = torch.arange(300)
+    points = UpdatePoints(index, index, weights, upshift, static=static)
+    index = select_points(points, 50, torch.Generator().manual_seed(0)).positions
     assert (index < 10).sum() == 10 and ((index >= 10) & (index < 20)).sum() == 10 and (index >= 20).sum() == 50
 
 
@@ -91,8 +96,9 @@ def test_s_static_keeps_the_static_points_that_share_plane_cells_with_the_upshif
         static = slab[used] if held else None
         levels = field.gear_levels(points[used], times[used])
         targets = level_targets(levels, upshift[used], field.num_gears, static)
-        shift_gears(field, optimizer, points[used], times[used], torch.ones(int(used.sum())), upshift[used], targets,
-                    1.0, 0.25, max_steps=300, static=static)
+        chosen = UpdatePoints(points[used], times[used], torch.ones(int(used.sum())), upshift[used], static=static)
+        settings = GearUpdateConfig(stay_weight=1.0, static_weight=1.0, margin=0.25, max_steps=300)
+        shift_gears(field, optimizer, chosen, targets, settings)
         levels = field.gear_levels(points, times)
         assert bool((levels[upshift] == 2).all()) and bool((levels[stay] == 1).all())
         lifted[held] = float((levels[slab] > 1).float().mean())
@@ -111,7 +117,8 @@ def test_shift_gears_upshifts_the_masked_region_only():
     for expected in (2, 3):
         levels = field.gear_levels(points, times)
         targets = level_targets(levels, upshift, field.num_gears)
-        steps = shift_gears(field, optimizer, points, times, weights, upshift, targets, 1.0, 0.25, max_steps=300)
+        settings = GearUpdateConfig(stay_weight=1.0, margin=0.25, max_steps=300)
+        steps = shift_gears(field, optimizer, UpdatePoints(points, times, weights, upshift), targets, settings)
         new_levels = field.gear_levels(points, times)
         assert steps < 300
         assert bool((new_levels[upshift] == expected).all())

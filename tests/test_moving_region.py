@@ -10,7 +10,7 @@ from nerfstudio.data.datasets.base_dataset import InputDataset
 
 from gear_nerfstudio.data.errors import DatasetError
 from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParserConfig
-from gear_nerfstudio.model.gear_model import MIN_MSE
+from gear_nerfstudio.model.metrics import MIN_MSE
 from gear_nerfstudio.model.moving_region import EvalViews, changed_pixels, region_scores, region_sums
 from tests.conftest import SHARED_REAL
 

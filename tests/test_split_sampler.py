@@ -7,7 +7,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.model_components.ray_samplers import UniformSampler
 from nerfstudio.model_components.renderers import AccumulationRenderer, DepthRenderer, RGBRenderer
 
-from gear_nerfstudio.model.split_sampler import SplitSampler, split_ray_samples
+from gear_nerfstudio.model.split_sampler import split_ray_samples
 
 
 def ray_bundle(num_rays: int = 6, seed: int = 0) -> RayBundle:
@@ -148,24 +148,6 @@ def test_pack_unpack_round_trip_and_padding_copies_last_sample():
     for r in range(split.valid.shape[0]):
         last = int(split.num_samples_per_ray[r]) - 1
         assert (unpacked[r, last + 1 :] == values[r, last]).all()
-
-
-def test_split_sampler_queries_levels_at_midpoints_and_times():
-    base = base_samples()
-    calls = []
-
-    def level_fn(positions, times):
-        calls.append((positions, times))
-        along = ((positions - base.frustums.origins) * base.frustums.directions).sum(-1)
-        return torch.where(along > 2.0, 3, 1)
-
-    split = SplitSampler()(base, level_fn)
-    positions, times = calls[0]
-    assert torch.allclose(positions, base.frustums.get_positions())
-    assert torch.equal(times, base.times)
-    midpoints = (base.frustums.starts + base.frustums.ends)[..., 0] / 2
-    expected = torch.where(midpoints > 2.0, 4, 1).sum(dim=1)
-    assert torch.equal(split.num_samples_per_ray, expected)
 
 
 def test_split_base_three():

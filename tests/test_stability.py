@@ -49,7 +49,7 @@ raw_densities = st.sampled_from([-1e6, -100.0, -20.0, 0.0, 20.0, 88.0, 100.0, 20
 def capture_weights(model) -> dict:
     """Record the weights the model hands to its accumulation renderer (the real Eq 1 weights)."""
     seen = {}
-    model.renderer_accumulation.register_forward_hook(
+    model.renderer.accumulation.register_forward_hook(
         lambda module, args, kwargs, output: seen.update(weights=kwargs["weights"].detach()), with_kwargs=True
     )
     return seen

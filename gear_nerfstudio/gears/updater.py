@@ -73,7 +73,7 @@ from gear_nerfstudio.gears.schedule import (
     spread_views,
     update_interval,
 )
-from gear_nerfstudio.gears.upshift import level_targets, select_points, shift_gears
+from gear_nerfstudio.gears.upshift import UpdatePoints, level_targets, select_points, shift_gears
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding, SamBackend, sample_features
 
@@ -223,17 +223,13 @@ class GearUpdater:
         )
         shifts = [self.upshift_mask(m) for m in maps]
         masks = [mask for mask, _, _ in shifts]
-        points, times, weights, upshift, still, static = self.sample_points(maps, masks)
-        generator = torch.Generator(weights.device).manual_seed(int(self.rng.integers(2**31)))
-        index, weights = select_points(weights, upshift, config.max_points, generator, static)
-        points, times, upshift, still, static = points[index], times[index], upshift[index], still[index], static[index]
-        levels = self.target.gear_levels(points, times)
-        targets = level_targets(levels, upshift, self.target.num_gears, still)
-        steps = shift_gears(
-            self.target, self.optimizer, points, times, weights, upshift, targets, config.stay_weight, config.margin,
-            config.max_steps, static, config.static_weight,
-        )
-        new_levels = self.target.gear_levels(points, times)
+        points = self.sample_points(maps, masks)
+        generator = torch.Generator(points.weights.device).manual_seed(int(self.rng.integers(2**31)))
+        points = select_points(points, config.max_points, generator)
+        levels = self.target.gear_levels(points.positions, points.times)
+        targets = level_targets(levels, points.upshift, self.target.num_gears, points.still)
+        steps = shift_gears(self.target, self.optimizer, points, targets, config)
+        new_levels = self.target.gear_levels(points.positions, points.times)
         self.state.num_updates += 1
 
         stats.update(
@@ -382,26 +378,28 @@ class GearUpdater:
         mask = F.interpolate(mask, size=shape, mode="area")[0, 0].to(self.target.device) > 0.5
         return mask & in_motion, points, labels
 
-    def sample_points(
-        self, maps: List[LossMap], masks: List[Tensor]
-    ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Points on rays inside (S_upshift) and outside (S_stay) the masks, and of S_static (``static_rays``):
-        positions, times, rendering weights, whether in S_upshift, whether on a pixel that stays still around the
-        view's time (motion gate on; every point of S_static), and whether in S_static. Half of each view's S_stay
-        rays come from the pixels at risk of moving up with the mask (``stay_focus``)."""
+    def sample_points(self, maps: List[LossMap], masks: List[Tensor]) -> UpdatePoints:
+        """Points on rays inside (S_upshift) and outside (S_stay) the masks, and of S_static (``static_rays``), with
+        their rendering weights; ``still``: on a pixel that stays still around the view's time (motion gate on;
+        every point of S_static). Half of each view's S_stay rays come from the pixels at risk of moving up with the
+        mask (``stay_focus``)."""
         config = self.config
         per_view = max(1, config.rays_per_set // len(maps))
-        points, times, weights, upshift, still, static = [], [], [], [], [], []
+        parts: List[UpdatePoints] = []
 
         def add(camera: Cameras, pixels: Tensor, inside: bool, unchanged: Tensor, held: bool) -> None:
-            position, time, weight = self.target.sample_weights(camera, pixels)
-            points.append(position)
-            times.append(time)
-            weights.append(weight)
-            samples = len(weight) // len(pixels)
-            upshift.append(torch.full((len(weight),), inside, dtype=torch.bool, device=weight.device))
-            still.append(unchanged.to(weight.device).repeat_interleave(samples))
-            static.append(torch.full((len(weight),), held, dtype=torch.bool, device=weight.device))
+            positions, times, weights = self.target.sample_weights(camera, pixels)
+            samples = len(weights) // len(pixels)
+            parts.append(
+                UpdatePoints(
+                    positions,
+                    times,
+                    weights,
+                    upshift=torch.full((len(weights),), inside, dtype=torch.bool, device=weights.device),
+                    still=unchanged.to(weights.device).repeat_interleave(samples),
+                    static=torch.full((len(weights),), held, dtype=torch.bool, device=weights.device),
+                )
+            )
 
         for loss_map, mask in zip(maps, masks):
             moving = moving_pixels(loss_map.change, config.patch_size, config.motion_threshold)
@@ -417,7 +415,7 @@ class GearUpdater:
                     add(loss_map.camera, pixels, inside, unchanged & (config.motion_threshold > 0), False)
             for camera, pixels in self.static_rays(loss_map, per_view):
                 add(camera, pixels, False, torch.ones(len(pixels), dtype=torch.bool), True)
-        return tuple(torch.cat(values) for values in (points, times, weights, upshift, still, static))
+        return UpdatePoints.cat(parts)
 
     def static_rays(self, loss_map: LossMap, count: int) -> List[Tuple[Cameras, Tensor]]:
         """S_static's rays for one view (``GearUpdateConfig.static_views``): up to ``static_views`` other training

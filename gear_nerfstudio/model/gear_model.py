@@ -1,55 +1,46 @@
 """Gear-NeRF model for nerfstudio (Liu et al., CVPR 2024).
 
-Per batch of rays: base sampler (uniform, n = 64 in the paper, or a proposal network) -> gear level p of
-each base sample -> split sampler (Sec 4.4) -> GearField (Eq 3-7) -> renderers for colour (Eq 1),
-depth, accumulation, SAM features (Eq 8), gear level and samples per ray. Losses: Eq 2, Eq 9 and the
-K-Planes regularisers. The gear function g is a separate parameter group ("gear_field") that the
-radiance optimiser never sees; it is trained by the gear-update step (Sec 4.3, Eq 10-11).
+Per batch of rays, one forward pass: base samples (uniform, n = 64 in the paper, or a proposal network), the gear
+level p of each and the split sampler (Sec 4.4; ``sampling.GearSampler``) -> GearField (Eq 3-7) and renderers for
+colour (Eq 1), depth, accumulation, SAM features (Eq 8), gear level and samples per ray (``rendering.GearRenderer``).
+Full-image renders are sparse forward passes in chunks (``image_render``). Losses: Eq 2, Eq 9 and the K-Planes
+regularisers (``losses.GearLosses``); image metrics in ``metrics``. The gear function g is a separate parameter group
+("gear_field") that the radiance optimiser never sees; it is trained by the gear-update step (Sec 4.3, Eq 10-11).
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Set, Tuple, Type
 
-import matplotlib
-import numpy as np
 import torch
 import tyro
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Float, Int
 from torch import Tensor
 from torch.nn import Parameter
 
 from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import OrientedBox
-from nerfstudio.cameras.rays import RayBundle, RaySamples
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.field_components.spatial_distortions import SceneContraction
-from nerfstudio.model_components.losses import MSELoss, distortion_loss, interlevel_loss
-from nerfstudio.model_components.ray_samplers import (
-    ProposalNetworkSampler,
-    UniformLinDispPiecewiseSampler,
-    UniformSampler,
-)
-from nerfstudio.model_components.renderers import AccumulationRenderer, DepthRenderer, RGBRenderer
+from nerfstudio.model_components.ray_samplers import UniformSampler
 from nerfstudio.model_components.scene_colliders import AABBBoxCollider, NearFarCollider
 from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gear_nerfstudio import distributed
-from gear_nerfstudio.errors import InputError
-from gear_nerfstudio.fields.gear_field import GearField, GearFieldHeadNames, sample_points
+from gear_nerfstudio.fields.gear_field import GearField
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
 from gear_nerfstudio.fields.seen_space import SeenSpace
 from gear_nerfstudio.model.image_render import render_image
+from gear_nerfstudio.model.losses import GearLosses, LossWeights
+from gear_nerfstudio.model.metrics import ImageMetrics, near_layer, psnr
 from gear_nerfstudio.model.moving_region import EvalViews, region_sums
-from gear_nerfstudio.model.renderers import GearLevelRenderer, SamRenderer
-from gear_nerfstudio.model.split_sampler import SplitSampler
+from gear_nerfstudio.model.rendering import GearRenderer, RenderRequest
+from gear_nerfstudio.model.sampling import GearSampler, ProposalSchedule, SampleCounts
 
 
 @dataclass
@@ -174,61 +165,6 @@ class GearNeRFModelConfig(ModelConfig):
     None: 2^15 on the CPU, 2^21 on a GPU."""
 
 
-MIN_MSE = 1e-10
-"""Floor of the mean squared error in PSNR: a perfect prediction reports 100 dB instead of inf."""
-
-
-def psnr(prediction: Tensor, target: Tensor) -> Tensor:
-    """PSNR in dB for colours in [0, 1], -10 log10(MSE), with the MSE clamped at ``MIN_MSE``.
-
-    Without the floor an exact match (all-black or all-white frames, background pixels) gives log10(0),
-    i.e. inf, which poisons every mean over images that ns-eval and the logs take.
-    """
-    return -10.0 * torch.log10(torch.mean((prediction - target) ** 2).clamp(min=MIN_MSE))
-
-
-NEAR_LAYER_DEPTH = 0.25
-"""A pixel of an evaluation view is in a near layer when its depth is below this share of the training rays'
-median depth."""
-NEAR_LAYER_WARNING = 0.2
-"""Share of an opaque evaluation view (accumulation above 0.9) in a near layer that training reports."""
-
-
-def near_layer_pixels(depth: Float[Tensor, "*bs 1"], training_depth: Tensor) -> Bool[Tensor, "*bs 1"]:
-    """Pixels of a render whose depth is below ``NEAR_LAYER_DEPTH`` x the training rays' median depth: on a rig whose
-    cameras see the scene from similar distances, a held-out view that ends that close sees a layer in front of
-    itself (none before any training batch has set the reference)."""
-    return depth < NEAR_LAYER_DEPTH * training_depth
-
-
-def near_layer(depth: Float[Tensor, "*bs 1"], training_depth: Tensor) -> float:
-    """Share of a render's pixels in a near layer (``near_layer_pixels``)."""
-    return float(near_layer_pixels(depth, training_depth).float().mean())
-
-
-def near_layer_warning(views: List[Tuple[str, Dict[str, float]]], training_depth: float) -> Optional[str]:
-    """One line naming the views (label, image metrics) that are opaque (accumulation above 0.9) and have more than
-    ``NEAR_LAYER_WARNING`` of their pixels in a near layer; None when there are none."""
-    layered = [
-        f"{label} ({100 * metrics['near_layer']:.0f} %)"
-        for label, metrics in views
-        if metrics["near_layer"] > NEAR_LAYER_WARNING and metrics["accumulation"] > 0.9
-    ]
-    if not layered:
-        return None
-    return (
-        f"Gear-NeRF: an opaque layer sits in front of the camera, closer than {NEAR_LAYER_DEPTH:g} x the training rays' "
-        f"median depth ({training_depth:.3g}), in {len(layered)} of {len(views)} evaluation views: {', '.join(layered)}"
-    )
-
-
-def lpips_weights_path() -> Path:
-    """Where torchvision keeps the AlexNet weights that torchmetrics' LPIPS needs."""
-    from torchvision.models import AlexNet_Weights
-
-    return Path(torch.hub.get_dir()) / "checkpoints" / Path(AlexNet_Weights.DEFAULT.url).name
-
-
 @contextlib.contextmanager
 def evaluating(model: Model) -> Iterator[None]:
     """Render in evaluation mode (no sample jitter), restoring the model's mode afterwards."""
@@ -278,12 +214,6 @@ class GearNeRFModel(Model):
         )
 
         self.proposal_networks = torch.nn.ModuleList()
-        render_proposal = config.render_num_proposal_samples
-        if render_proposal is not None and len(render_proposal) != len(config.num_proposal_samples):
-            raise InputError(
-                f"--pipeline.model.render-num-proposal-samples has {len(render_proposal)} values but the model has "
-                f"{len(config.num_proposal_samples)} proposal iterations (--pipeline.model.num-proposal-samples)"
-            )
         if config.base_sampler == "proposal":
             time_resolution = config.proposal_time_resolution or max(1, self.num_frames // 2)
             for i in range(len(config.num_proposal_samples)):
@@ -297,25 +227,23 @@ class GearNeRFModel(Model):
                         plane_kernel=config.plane_kernel,
                     )
                 )
-
-            def update_schedule(step: int) -> float:
-                return np.clip(
-                    np.interp(step, [0, config.proposal_warmup], [0, config.proposal_update_every]),
-                    1,
-                    config.proposal_update_every,
-                )
-
-            initial_sampler = UniformLinDispPiecewiseSampler() if unbounded else UniformSampler()
-            self.base_sampler = ProposalNetworkSampler(
-                num_proposal_samples_per_ray=config.num_proposal_samples,
-                num_nerf_samples_per_ray=config.num_samples,
-                num_proposal_network_iterations=len(config.num_proposal_samples),
-                update_sched=update_schedule,
-                initial_sampler=initial_sampler,
-            )
-        else:
-            self.base_sampler = UniformSampler(num_samples=config.num_samples)
-        self.split_sampler = SplitSampler(split_base=config.split_base)
+        self.sampler = GearSampler(
+            SampleCounts(config.num_samples, config.num_proposal_samples),
+            SampleCounts(
+                config.render_num_samples or config.num_samples,
+                config.render_num_proposal_samples or config.num_proposal_samples,
+            ),
+            config.split_base,
+            self.proposal_networks,
+            ProposalSchedule(
+                config.proposal_warmup,
+                config.proposal_update_every,
+                config.use_proposal_weight_anneal,
+                config.proposal_weights_anneal_slope,
+                config.proposal_weights_anneal_max_num_iters,
+            ),
+            unbounded,
+        )
 
         near = metadata.get("near") if config.near_plane is None else config.near_plane
         far = metadata.get("far") if config.far_plane is None else config.far_plane
@@ -325,16 +253,27 @@ class GearNeRFModel(Model):
         else:
             self.collider = NearFarCollider(near_plane=float(near), far_plane=float(far), reset_near_plane=False)
 
-        self.renderer_rgb = RGBRenderer(background_color=config.background_color)
-        self.renderer_accumulation = AccumulationRenderer()
-        self.renderer_depth = DepthRenderer(method="median")
-        self.renderer_sam = SamRenderer()
-        self.renderer_gear_level = GearLevelRenderer()
-        # the "gear" image's turbo colour map (as nerfstudio's apply_colormap, whose range asserts and per-call
-        # table upload each cost a host sync every training step)
-        self.register_buffer("gear_colors", torch.tensor(matplotlib.colormaps["turbo"].colors), persistent=False)
-        self.rgb_loss = MSELoss()
-        self._lpips: Dict[str, Any] = {}
+        self.renderer = GearRenderer(config.background_color, config.num_gears)
+        self.losses = GearLosses(
+            LossWeights(
+                sam=config.sam_loss_mult,
+                field={
+                    "plane_tv": config.plane_tv_mult,
+                    "l1_time_planes": config.l1_time_planes_mult,
+                    "time_smoothness": config.time_smoothness_mult,
+                },
+                proposal={
+                    "plane_tv": config.plane_tv_proposal_mult,
+                    "l1_time_planes": config.l1_time_planes_proposal_mult,
+                    "time_smoothness": config.time_smoothness_proposal_mult,
+                },
+                interlevel=config.interlevel_loss_mult,
+                distortion=config.distortion_loss_mult,
+            ),
+            self.renderer.rgb,
+            self.proposal_networks,
+        )
+        self.metrics = ImageMetrics(self.renderer.rgb)
         self.render_hooks: List[Callable[[Cameras, Dict[str, Tensor]], Dict[str, Tensor]]] = []
         """Extra outputs of full-image renders (``get_outputs_for_camera``), such as the viewer's tracked mask."""
         self.warned_no_time = False
@@ -379,82 +318,31 @@ class GearNeRFModel(Model):
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
         """Proposal weight annealing and update schedule, when the proposal sampler is used."""
-        callbacks: List[TrainingCallback] = []
-        if not isinstance(self.base_sampler, ProposalNetworkSampler) or not self.config.use_proposal_weight_anneal:
-            return callbacks
-        sampler = self.base_sampler
-        max_iters = self.config.proposal_weights_anneal_max_num_iters
-        slope = self.config.proposal_weights_anneal_slope
+        return self.sampler.training_callbacks()
 
-        def set_anneal(step: int) -> None:
-            fraction = np.clip(step / max_iters, 0, 1)
-            sampler.set_anneal((slope * fraction) / ((slope - 1) * fraction + 1))
-
-        return callbacks + [
-            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], set_anneal, update_every_num_iters=1),
-            TrainingCallback(
-                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], sampler.step_cb, update_every_num_iters=1
-            ),
-        ]
-
-    def sample_base(self, ray_bundle: RayBundle) -> Tuple[RaySamples, List[Tensor], List[RaySamples]]:
-        """Base samples (n per ray) and, for the proposal sampler, its weights and samples per level."""
-        if isinstance(self.base_sampler, ProposalNetworkSampler):
-            density_fns = [functools.partial(net.density_fn, times=ray_bundle.times) for net in self.proposal_networks]
-            return self.base_sampler(ray_bundle, density_fns=density_fns)
-        return self.base_sampler(ray_bundle), [], []
-
-    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Any]:
-        """Render rgb, depth, accumulation, sam (Eq 8), gear_level, gear and num_samples per ray."""
-        base_samples, weights_list, ray_samples_list = self.sample_base(ray_bundle)
-        split = self.split_sampler(base_samples, self.field.gear_levels)
-        samples = split.ray_samples
-        appearance = self.field.appearance
-        packed = sample_points(
-            split.pack(samples.frustums.get_positions()),
-            None if samples.times is None else split.pack(samples.times),
-            split.pack(samples.frustums.directions),
-            None if appearance is None else appearance(ray_bundle.metadata, ray_bundle.origins.shape[0])[split.ray_index],
-        )
-        field_outputs = self.field(packed)
-        density = torch.where(split.valid[..., None], split.unpack(field_outputs[FieldHeadNames.DENSITY]), 0.0)
-        weights = samples.get_weights(density)
-
-        rgb = self.renderer_rgb(rgb=split.unpack(field_outputs[FieldHeadNames.RGB]), weights=weights)
-        accumulation = self.renderer_accumulation(weights=weights)
-        sam = self.field.lift_sam(self.renderer_sam(split, weights, field_outputs[GearFieldHeadNames.SAM]), accumulation)
-        gear_level = self.renderer_gear_level(split, weights, field_outputs[GearFieldHeadNames.GEAR_LEVEL])
-        outputs: Dict[str, Any] = {
-            "rgb": rgb,
-            "depth": self.renderer_depth(weights=weights, ray_samples=samples),
-            "accumulation": accumulation,
-            "sam": sam,
-            "gear_level": gear_level,
-            "gear": self.gear_image(gear_level),
-            "num_samples": split.num_samples_per_ray[:, None].to(weights.dtype),
-        }
-        if self.training:
+    def get_outputs(self, ray_bundle: RayBundle, request: RenderRequest = RenderRequest()) -> Dict[str, Any]:
+        """The one forward pass: base samples -> gear levels -> split samples (Sec 4.4) -> field (Eq 3-7) -> rgb,
+        depth, accumulation and those of sam (Eq 8), gear_level, gear and num_samples that ``request`` names (all by
+        default); in training also the K-Planes regularisers and the proposal sampler's weights and samples."""
+        samples = self.sampler(ray_bundle, self.field.gear_levels)
+        outputs, weights = self.renderer(self.field, ray_bundle, samples, request)
+        if self.training and not request.sparse:
             # The K-Planes regularisers are computed here, in the forward pass, not in get_loss_dict: under DDP
             # (several GPUs) a plane that only the loss would use (a gear in use but absent from this process's
             # batch) is not reached from the forward's outputs, so DDP marks it unused, and the backward pass then
             # fails when its gradient arrives.
             outputs.update({f"regulariser_{name}": value for name, value in self.field.regularisers().items()})
-        if ray_samples_list:
-            weights_list.append(split.to_base(weights))
-            ray_samples_list.append(base_samples)
+        if samples.proposal_samples and not request.sparse:
+            weights_list = [*samples.proposal_weights, samples.split.to_base(weights)]
+            ray_samples_list = [*samples.proposal_samples, samples.base]
             if self.training:
                 outputs["weights_list"] = weights_list
                 outputs["ray_samples_list"] = ray_samples_list
             for i in range(len(ray_samples_list) - 1):
-                outputs[f"prop_depth_{i}"] = self.renderer_depth(
+                outputs[f"prop_depth_{i}"] = self.renderer.depth(
                     weights=weights_list[i], ray_samples=ray_samples_list[i]
                 )
         return outputs
-
-    def gear_image(self, gear_level: Float[Tensor, "*bs 1"]) -> Float[Tensor, "*bs 3"]:
-        """The "gear" output: the rendered gear level on the turbo colour map, gear 1 to N_gear."""
-        fraction = ((gear_level.detach() - 1.0) / max(self.config.num_gears - 1, 1)).clamp(0.0, 1.0)
-        return self.gear_colors[(fraction.nan_to_num(0.0) * 255).long()[..., 0]]
 
     @contextlib.contextmanager
     def rendering(self, *names: str) -> Iterator[None]:
@@ -466,32 +354,22 @@ class GearNeRFModel(Model):
         finally:
             self.extra_outputs = before
 
-    @contextlib.contextmanager
-    def render_sampling(self) -> Iterator[int]:
-        """Inside, the base sampler draws n = ``render_num_samples`` per ray (and ``render_num_proposal_samples``)
-        where they are set; yields n."""
-        sampler, config = self.base_sampler, self.config
-        if isinstance(sampler, ProposalNetworkSampler):
-            counts = {
-                "num_nerf_samples_per_ray": config.render_num_samples,
-                "num_proposal_samples_per_ray": config.render_num_proposal_samples,
-            }
-        else:
-            counts = {"num_samples": config.render_num_samples}
-        counts = {name: value for name, value in counts.items() if value is not None}
-        before = {name: getattr(sampler, name) for name in counts}
-        for name, value in counts.items():
-            setattr(sampler, name, value)
-        try:
-            yield config.render_num_samples or config.num_samples
-        finally:
-            for name, value in before.items():
-                setattr(sampler, name, value)
-
     @torch.no_grad()
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
-        """Full-image renders: ``image_render.render_image`` (only the outputs asked for, in large chunks)."""
-        return render_image(self, camera_ray_bundle, self.extra_outputs)
+        """Full-image renders: sparse forward passes (``RenderRequest``) of the outputs asked for (the config's
+        ``render_outputs`` and those of ``rendering``), chunk by chunk (``image_render.render_image``), with the
+        render sample counts."""
+        names = frozenset(self.config.render_outputs) | self.extra_outputs
+        request = RenderRequest(names | {"num_samples"}, sparse=True)
+        chunk_samples = self.config.render_chunk_samples or (1 << 15 if self.device.type == "cpu" else 1 << 21)
+        with self.sampler.rendering() as num_samples:
+            return render_image(
+                lambda rays: self.get_outputs(self.collider(rays.to(self.device)), request),
+                camera_ray_bundle,
+                names,
+                chunk_samples,
+                num_samples,
+            )
 
     @torch.no_grad()
     def get_outputs_for_camera(self, camera: Cameras, obb_box: Optional[OrientedBox] = None) -> Dict[str, Tensor]:
@@ -529,23 +407,21 @@ class GearNeRFModel(Model):
         seen = None
         if min_views > 0:
             seen = SeenSpace(cameras, min_views, self.field.aabb, self.field.spatial_distortion)
-        self._set_seen_space(seen)
+        for field in [self.field, *self.proposal_networks]:  # they share one seen_space
+            field.seen_space = seen
 
     @contextlib.contextmanager
     def all_space(self) -> Iterator[None]:
         """Inside, renders take the density everywhere (``see_from`` is set aside), as training does: the gear
         updates render training views so."""
-        seen = self.field.seen_space
-        self._set_seen_space(None)
+        fields, seen = [self.field, *self.proposal_networks], self.field.seen_space
+        for field in fields:
+            field.seen_space = None
         try:
             yield
         finally:
-            self._set_seen_space(seen)
-
-    def _set_seen_space(self, seen: Optional[SeenSpace]) -> None:
-        """The field and the proposal networks share one ``seen_space``."""
-        for field in [self.field, *self.proposal_networks]:
-            field.seen_space = seen
+            for field in fields:
+                field.seen_space = seen
 
     @torch.no_grad()
     def visible_surface(self, camera: Cameras, outputs: Dict[str, Tensor]) -> Float[Tensor, "H W 3"]:
@@ -579,7 +455,7 @@ class GearNeRFModel(Model):
     def get_metrics_dict(self, outputs: Dict[str, Any], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """PSNR of the batch and the mean number of samples per ray; a training batch also sets
         ``training_depth``, the median depth of its rays averaged over processes (the reference of ``near_layer``)."""
-        image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        image = self.renderer.rgb.blend_background(batch["image"].to(self.device))
         if self.training:
             self.training_depth.copy_(distributed.average(outputs["depth"].detach().median()))
         return {
@@ -590,77 +466,20 @@ class GearNeRFModel(Model):
     def get_loss_dict(
         self, outputs: Dict[str, Any], batch: Dict[str, Tensor], metrics_dict: Optional[Dict[str, Tensor]] = None
     ) -> Dict[str, Tensor]:
-        """Eq 2 (rgb), Eq 9 (sam, when the batch has "sam_features") and the K-Planes regularisers."""
-        config = self.config
-        pred_rgb, image = self.renderer_rgb.blend_background_for_loss_computation(
-            pred_image=outputs["rgb"],
-            pred_accumulation=outputs["accumulation"],
-            gt_image=batch["image"].to(self.device),
-        )
-        loss_dict = {"rgb_loss": self.rgb_loss(image, pred_rgb)}
-        if "sam_features" in batch:
-            target = batch["sam_features"].to(self.device)
-            loss_dict["sam_loss"] = config.sam_loss_mult * self.rgb_loss(target, outputs["sam"])
-        if self.training:
-            loss_dict["plane_tv"] = config.plane_tv_mult * outputs["regulariser_plane_tv"]
-            loss_dict["l1_time_planes"] = config.l1_time_planes_mult * outputs["regulariser_l1_time_planes"]
-            loss_dict["time_smoothness"] = config.time_smoothness_mult * outputs["regulariser_time_smoothness"]
-            if "weights_list" in outputs:
-                proposal = [net.regularisers() for net in self.proposal_networks]
-                loss_dict["plane_tv_proposal"] = config.plane_tv_proposal_mult * sum(r["plane_tv"] for r in proposal)
-                loss_dict["l1_time_planes_proposal"] = config.l1_time_planes_proposal_mult * sum(
-                    r["l1_time_planes"] for r in proposal
-                )
-                loss_dict["time_smoothness_proposal"] = config.time_smoothness_proposal_mult * sum(
-                    r["time_smoothness"] for r in proposal
-                )
-                loss_dict["interlevel_loss"] = config.interlevel_loss_mult * interlevel_loss(
-                    outputs["weights_list"], outputs["ray_samples_list"]
-                )
-                if config.distortion_loss_mult > 0:
-                    loss_dict["distortion_loss"] = config.distortion_loss_mult * distortion_loss(
-                        outputs["weights_list"], outputs["ray_samples_list"]
-                    )
-        return loss_dict
-
-    def lpips(self) -> Optional[torch.nn.Module]:
-        """torchmetrics LPIPS if its AlexNet weights are already on disk (never downloads), else None."""
-        if "metric" not in self._lpips:
-            path = lpips_weights_path()
-            if path.is_file():
-                from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
-
-                self._lpips["metric"] = LearnedPerceptualImagePatchSimilarity(normalize=True)
-            else:
-                CONSOLE.log(f"[yellow]LPIPS skipped: AlexNet weights not found at {path} (nothing is downloaded).")
-                self._lpips["metric"] = None
-        metric = self._lpips["metric"]
-        return None if metric is None else metric.to(self.device)
+        """Eq 2 (rgb), Eq 9 (sam, when the batch has "sam_features") and the K-Planes regularisers
+        (``losses.GearLosses``)."""
+        return self.losses(outputs, batch, self.training)
 
     def image_metrics(self, rgb: Float[Tensor, "H W 3"], image: Float[Tensor, "H W C"]) -> Dict[str, float]:
-        """PSNR, SSIM (and LPIPS when its weights are local) of a render against its image (RGBA images are
-        blended with the background first)."""
-        from torchmetrics.functional.image import structural_similarity_index_measure
-
-        image = self.renderer_rgb.blend_background(image.to(self.device))
-        rgb = rgb.to(self.device)
-        image_nchw = torch.moveaxis(image, -1, 0)[None]
-        rgb_nchw = torch.moveaxis(rgb, -1, 0)[None]
-        metrics = {
-            "psnr": float(psnr(rgb, image)),
-            "ssim": float(structural_similarity_index_measure(rgb_nchw, image_nchw, data_range=1.0)),
-        }
-        lpips = self.lpips()
-        if lpips is not None:
-            metrics["lpips"] = float(lpips(rgb_nchw.clamp(0, 1), image_nchw.clamp(0, 1)))
-        return metrics
+        """PSNR, SSIM (and LPIPS when its weights are local) of a render against its image (``ImageMetrics``)."""
+        return self.metrics(rgb, image, self.device)
 
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
         """PSNR, SSIM (and LPIPS when its weights are local), accumulation and near layer on a full image; with
         ``eval_views``, the sums of ``moving_region.region_sums`` for that view; rgb, depth, gear images."""
-        image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        image = self.renderer.rgb.blend_background(batch["image"].to(self.device))
         rgb = outputs["rgb"]
         metrics_dict = self.image_metrics(rgb, image)
         metrics_dict["accumulation"] = float(outputs["accumulation"].mean())

@@ -16,16 +16,12 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable, Optional
 
 import torch
 from jaxtyping import Bool, Float, Int
-from torch import Tensor, nn
+from torch import Tensor
 
 from nerfstudio.cameras.rays import RaySamples
-
-GearLevelFn = Callable[[Float[Tensor, "*bs 3"], Optional[Float[Tensor, "*bs 1"]]], Int[Tensor, "*bs"]]
-
 
 @dataclass
 class SplitRaySamples:
@@ -133,21 +129,3 @@ def split_ray_samples(
         num_samples_per_ray=num_samples_per_ray,
         ray_index=ray_index,
     )
-
-
-class SplitSampler(nn.Module):
-    """Sec 4.4: query p at each base sample (midpoint, time) and split it into split_base^(p-1) samples.
-
-    Args:
-        split_base: 2 in the paper (its ablation also tries 3).
-    """
-
-    def __init__(self, split_base: int = 2) -> None:
-        super().__init__()
-        self.split_base = split_base
-
-    def forward(self, ray_samples: RaySamples, gear_level_fn: GearLevelFn) -> SplitRaySamples:
-        """Split ``ray_samples`` (num_rays, n) by the gear levels ``gear_level_fn(positions, times)``."""
-        with torch.no_grad():
-            levels = gear_level_fn(ray_samples.frustums.get_positions(), ray_samples.times)
-        return split_ray_samples(ray_samples, levels, self.split_base)

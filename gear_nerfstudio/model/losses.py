@@ -1,0 +1,79 @@
+"""Losses of Gear-NeRF training: Eq 2 (colour), Eq 9 (SAM features), the K-Planes regularisers of the field and of
+the proposal networks, and the proposal (interlevel) and distortion losses."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, Sequence
+
+from torch import Tensor
+
+from nerfstudio.model_components.losses import MSELoss, distortion_loss, interlevel_loss
+from nerfstudio.model_components.renderers import RGBRenderer
+
+from gear_nerfstudio.fields.proposal_field import ProposalDensityField
+
+REGULARISERS = ("plane_tv", "l1_time_planes", "time_smoothness")
+"""The K-Planes regularisers (``GearField.regularisers``)."""
+
+
+@dataclass
+class LossWeights:
+    """The multiplier of each loss (the model's config)."""
+
+    sam: float
+    """L_SAM (Eq 9)."""
+    field: Dict[str, float]
+    """Each of ``REGULARISERS`` on the radiance planes."""
+    proposal: Dict[str, float]
+    """Each of ``REGULARISERS`` on the proposal networks' planes."""
+    interlevel: float
+    """Proposal (interlevel) loss."""
+    distortion: float
+    """Distortion loss (Mip-NeRF 360) on the base samples; 0: off."""
+
+
+class GearLosses:
+    """The loss dict of a batch (nerfstudio's ``get_loss_dict``).
+
+    Args:
+        weights: the multipliers.
+        renderer: the colour renderer, whose background the images are blended with.
+        proposal_networks: the proposal density fields (none for the uniform base sampler).
+    """
+
+    def __init__(
+        self, weights: LossWeights, renderer: RGBRenderer, proposal_networks: Sequence[ProposalDensityField]
+    ) -> None:
+        self.weights = weights
+        self.renderer = renderer
+        self.proposal_networks = tuple(proposal_networks)
+        self.mse = MSELoss()
+
+    def __call__(self, outputs: Dict[str, Any], batch: Dict[str, Tensor], training: bool) -> Dict[str, Tensor]:
+        """Eq 2 (rgb), Eq 9 (sam, when the batch has "sam_features") and, in training, the regularisers (computed
+        in the forward pass, ``GearNeRFModel.get_outputs``) and the proposal losses."""
+        weights = self.weights
+        device = outputs["rgb"].device
+        pred_rgb, image = self.renderer.blend_background_for_loss_computation(
+            pred_image=outputs["rgb"], pred_accumulation=outputs["accumulation"], gt_image=batch["image"].to(device)
+        )
+        losses = {"rgb_loss": self.mse(image, pred_rgb)}
+        if "sam_features" in batch:
+            losses["sam_loss"] = weights.sam * self.mse(batch["sam_features"].to(device), outputs["sam"])
+        if not training:
+            return losses
+        for name in REGULARISERS:
+            losses[name] = weights.field[name] * outputs[f"regulariser_{name}"]
+        if "weights_list" in outputs:
+            proposal = [net.regularisers() for net in self.proposal_networks]
+            for name in REGULARISERS:
+                losses[f"{name}_proposal"] = weights.proposal[name] * sum(r[name] for r in proposal)
+            losses["interlevel_loss"] = weights.interlevel * interlevel_loss(
+                outputs["weights_list"], outputs["ray_samples_list"]
+            )
+            if weights.distortion > 0:
+                losses["distortion_loss"] = weights.distortion * distortion_loss(
+                    outputs["weights_list"], outputs["ray_samples_list"]
+                )
+        return losses
