@@ -102,8 +102,7 @@ class GearNeRFModelConfig(ModelConfig):
     """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's
     initialisation, about exp(-1) = 0.37 (K-Planes)."""
     plane_kernel: Literal["torch", "warp"] = "torch"
-    """Plane lookups of the radiance field and the proposal networks: "torch" (grid_sample per plane) or "warp" (one
-    fused Warp kernel, same values; needs the ``kernel`` extra). See benchmarks/results/plane_kernel.md."""
+    """Plane lookups: "torch" (grid_sample) or "warp" (one fused kernel, same values; the ``kernel`` extra)."""
     sam_head_dim: Optional[int] = 32
     """SAM embedding dimension per sample before the learned lift to sam_dim; None predicts sam_dim."""
     num_samples: int = 64
