@@ -249,14 +249,14 @@ def variants(run: Run, args: "GpuSpeed", reference: Tensor) -> List[Dict[str, An
         with compiled_densities(run.model):
             render("render, density functions compiled (torch.compile, dynamic shapes; compiled in the warm-up)")
     for chunk in args.render_chunks:
-        config.render_chunk_samples = chunk
+        config.render.chunk_samples = chunk
         render(f"render, chunks of {chunk:,} samples")
-    config.render_chunk_samples = args.samples_chunk
+    config.render.chunk_samples = args.samples_chunk
     for counts in args.render_samples:
         set_render_counts(config, counts)
         chunk = f", chunks of {args.samples_chunk:,} samples" if args.samples_chunk else ""
         render(f"render, samples {counts}{chunk}")
-    config.render_num_samples = config.render_num_proposal_samples = config.render_chunk_samples = None
+    config.render.num_samples = config.render.num_proposal_samples = config.render.chunk_samples = None
     for row in rows:
         if "image" in row:
             row["psnr"] = float(psnr(row.pop("image"), reference))

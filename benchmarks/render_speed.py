@@ -69,13 +69,13 @@ def render_rows(config: Path, frames: int, repeats: int, images: Optional[Path])
 
 def set_render_counts(model_config, counts: str) -> None:
     """Set a model config's render sample counts from "P1,P2,N" (the proposal iterations' counts, then n)."""
-    *proposal, model_config.render_num_samples = (int(value) for value in counts.split(","))
-    model_config.render_num_proposal_samples = tuple(proposal) or None
+    *proposal, model_config.render.num_samples = (int(value) for value in counts.split(","))
+    model_config.render.num_proposal_samples = tuple(proposal) or None
 
 
 def sample_rows(config: Path, frames: int, repeats: int, variants: List[str]) -> List[str]:
-    """Table rows of the model's render path at other render sample counts (``render_num_proposal_samples`` and
-    ``render_num_samples``, given as "64,32,24": the proposal iterations' counts, then n) against the run's own:
+    """Table rows of the model's render path at other render sample counts (``render.num_proposal_samples`` and
+    ``render.num_samples``, given as "64,32,24": the proposal iterations' counts, then n) against the run's own:
     seconds per frame, pixels per second, PSNR against the held-out frames and against the render at the run's
     counts, averaged over the held-out frames."""
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
@@ -84,7 +84,7 @@ def sample_rows(config: Path, frames: int, repeats: int, variants: List[str]) ->
     cameras = [dataset.cameras[int(i) : int(i) + 1].to(model.device) for i in indices]
     bundles = [camera.generate_rays(camera_indices=0, keep_shape=True) for camera in cameras]
     truths = [dataset.get_image_float32(int(i))[..., :3].to(model.device) for i in indices]
-    own = ",".join(str(n) for n in (*model.config.num_proposal_samples, model.config.num_samples))
+    own = ",".join(str(n) for n in (*model.config.proposal.num_samples, model.config.num_samples))
     model.get_outputs_for_camera_ray_bundle(bundles[0])  # warm-up: the first render of a process is slower
     references, rows = None, []
     for variant in [own, *variants]:

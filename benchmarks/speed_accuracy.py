@@ -47,7 +47,7 @@ METHODS: Dict[str, Tuple[str, str]] = {
     "samples-16-rays-768": ("Gear-NeRF with 16 base samples per ray and 768 rays per batch",
                             "--pipeline.model.num-samples 16 --pipeline.datamanager.train-num-rays-per-batch 768"),
     "proposal-warmup": ("Gear-NeRF with the proposal networks' update warm-up at 1/6 of the run (K-Planes' ratio)",
-                        "--pipeline.model.proposal-warmup {sixth}"),
+                        "--pipeline.model.proposal.warmup {sixth}"),
     "gear-rows-1": ("Gear-NeRF with a gear function constant in time (k' of 1 row)",
                     "--pipeline.model.gear-time-resolution 1"),
     "gear-rows-4": ("Gear-NeRF with a gear function of 4 rows in time (k')", "--pipeline.model.gear-time-resolution 4"),
@@ -63,7 +63,7 @@ METHODS: Dict[str, Tuple[str, str]] = {
     "resolutions-64-128": ("Gear-NeRF with planes of 64 and 128 cells instead of 32 and 64",
                            "--pipeline.model.resolutions 64 128"),
     "time-smoothness-1e-4": ("Gear-NeRF with the time-smoothness weight at 1e-4 instead of 1e-3",
-                             "--pipeline.model.time-smoothness-mult 1e-4"),
+                             "--pipeline.model.losses.time-smoothness 1e-4"),
 }
 """Method keys: (label in the tables and the plot, ns-train overrides on the base preset; ``method_overrides``)."""
 

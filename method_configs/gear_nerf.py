@@ -24,6 +24,7 @@ from gear_nerfstudio.data.datamanager import GearDataManagerConfig
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gears.config import GearUpdateConfig
 from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.model.sampling import ProposalConfig
 from gear_nerfstudio.pipeline import GearPipelineConfig
 from gear_nerfstudio.schedulers import FloatCosineDecaySchedulerConfig
 from gear_nerfstudio.trainer_config import GearTrainerConfig
@@ -118,9 +119,7 @@ def small_model(num_gears: int) -> GearNeRFModelConfig:
         sam_head_dim=16,
         num_samples=24,
         base_sampler="proposal",
-        num_proposal_samples=(64, 32),
-        proposal_resolutions=(64, 128),
-        eval_num_rays_per_chunk=1024,
+        proposal=ProposalConfig(num_samples=(64, 32), resolutions=(64, 128)),
         gear1_row_fraction=GEAR1_ROW_FRACTION,
     )
 
@@ -133,7 +132,6 @@ gear_nerf = MethodSpecification(
             feature_dim=32,
             num_samples=64,
             base_sampler="proposal",
-            eval_num_rays_per_chunk=4096,
             gear1_row_fraction=GEAR1_ROW_FRACTION,
         ),
         num_rays_per_batch=4096,

@@ -31,7 +31,7 @@ def test_speed_accuracy_options() -> None:
 def test_method_overrides() -> None:
     for method in METHODS:
         assert all(" " not in arg and "{" not in arg for arg in method_overrides(method, 30, 3750))
-    assert method_overrides("proposal-warmup", 30, 3750) == ["--pipeline.model.proposal-warmup", "625"]
+    assert method_overrides("proposal-warmup", 30, 3750) == ["--pipeline.model.proposal.warmup", "625"]
     with pytest.raises(ValueError):
         method_overrides("no-such-method", 30, 3750)
 

@@ -10,7 +10,10 @@ from nerfstudio.model_components.scene_colliders import AABBBoxCollider, NearFar
 
 from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.model.losses import LossWeights
 from gear_nerfstudio.model.metrics import lpips_weights_path, near_layer_warning
+from gear_nerfstudio.model.rendering import FullImageRenders
+from gear_nerfstudio.model.sampling import ProposalConfig
 
 OUTPUT_KEYS = {"rgb", "depth", "accumulation", "sam", "gear_level", "gear", "num_samples"}
 METADATA = {"near": 0.5, "far": 4.5, "num_frames": 6, "unbounded": False}
@@ -71,7 +74,9 @@ def test_forward_loss_backward(base_sampler):
     """With the proposal sampler the distortion loss is on (it is computed only at a weight above 0)."""
     distortion = 0.5 if base_sampler == "proposal" else 0.0
     model = make_model(
-        base_sampler=base_sampler, num_proposal_samples=(16,), proposal_resolutions=(8,), distortion_loss_mult=distortion
+        base_sampler=base_sampler,
+        proposal=ProposalConfig(num_samples=(16,), resolutions=(8,)),
+        losses=LossWeights(distortion=distortion),
     )
     model.train()
     rays, batch = make_rays(), make_batch()
@@ -183,7 +188,7 @@ def test_metadata_drives_collider_frames_and_contraction():
 def test_split_samples_are_the_base_samples_in_use_split_inside_their_own_intervals(base_sampler):
     """Sec 4.4 on either base sampler: each base sample at gear p becomes 2^(p-1) samples that tile its own
     interval (the proposal sampler's intervals differ in length along a ray)."""
-    model = make_model(base_sampler=base_sampler, num_proposal_samples=(16,), proposal_resolutions=(8,))
+    model = make_model(base_sampler=base_sampler, proposal=ProposalConfig(num_samples=(16,), resolutions=(8,)))
     force_gears_in_upper_half(model, 3)
     model.train()
     rays = model.collider(make_rays(64))
@@ -323,7 +328,7 @@ def test_full_image_render_path_gives_the_forward_pass_outputs_asked_for():
     rays.times = torch.full_like(rays.times, 0.4)
     with torch.no_grad():
         forward = model(rays)
-    model.config.render_chunk_samples = 500  # several chunks
+    model.config.render.chunk_samples = 500  # several chunks
     rendered = model.get_outputs_for_camera_ray_bundle(rays)
     assert set(rendered) == {"rgb", "depth", "accumulation", "gear"}
     with model.rendering("sam", "gear_level", "num_samples"):
@@ -344,11 +349,14 @@ def test_full_image_render_path_gives_the_forward_pass_outputs_asked_for():
 
 @pytest.mark.parametrize("base_sampler", ["uniform", "proposal"])
 def test_render_sample_counts_apply_to_full_image_renders_only(base_sampler):
-    """``render_num_samples`` (and ``render_num_proposal_samples``) set n in full-image renders; training samples
+    """``render.num_samples`` (and ``render.num_proposal_samples``) set n in full-image renders; training samples
     and the forward pass keep the model's counts; a count per proposal iteration is checked at setup."""
     proposal = base_sampler == "proposal"
-    counts = {"num_proposal_samples": (16, 8), "render_num_proposal_samples": (8, 4)} if proposal else {}
-    model = make_model(base_sampler=base_sampler, render_num_samples=5, **counts)
+    model = make_model(
+        base_sampler=base_sampler,
+        proposal=ProposalConfig(num_samples=(16, 8)),
+        render=FullImageRenders(num_samples=5, num_proposal_samples=(8, 4) if proposal else None),
+    )
     model.eval()
     rays = make_rays(40)
     with model.rendering("num_samples"):
@@ -358,5 +366,9 @@ def test_render_sample_counts_apply_to_full_image_renders_only(base_sampler):
         assert torch.equal(model(rays)["num_samples"], torch.full((40, 1), 12.0))
     if proposal:
         assert model.sampler.base.num_proposal_samples_per_ray == (16, 8)
-        with pytest.raises(InputError, match="render-num-proposal-samples has 1 values but the model has 2"):
-            make_model(base_sampler="proposal", num_proposal_samples=(16, 8), render_num_proposal_samples=(8,))
+        with pytest.raises(InputError, match="render.num-proposal-samples has 1 values but the model has 2"):
+            make_model(
+                base_sampler="proposal",
+                proposal=ProposalConfig(num_samples=(16, 8)),
+                render=FullImageRenders(num_proposal_samples=(8,)),
+            )

@@ -318,7 +318,7 @@ def test_the_updates_render_their_views_as_training_sees_the_scene(loop_run):
     psnr = updater.psnr(views)
     away = copy.deepcopy(outputs.cameras[0:1])
     away.camera_to_worlds[:, :, :3] *= torch.tensor([-1.0, 1.0, -1.0])  # turned round about its y axis
-    model.config.min_views = 2
+    model.config.render.min_views = 2
     model.see_from(away)
     try:
         assert float(model.render_view(before.camera)["accumulation"].max()) == 0.0
@@ -328,7 +328,7 @@ def test_the_updates_render_their_views_as_training_sees_the_scene(loop_run):
         model.see_from(outputs.cameras)
         assert float(model.render_view(before.camera)["accumulation"].mean()) > 0.5
     finally:
-        model.config.min_views = 0
+        model.config.render.min_views = 0
         model.see_from(outputs.cameras)
 
 

@@ -9,6 +9,7 @@ import torch
 from gear_nerfstudio.fields.gear_field import GearField, sample_points
 from gear_nerfstudio.fields.plane_kernel import plane_products
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
+from gear_nerfstudio.model.sampling import ProposalConfig
 from tests.test_gear_model import make_model, make_rays
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -127,7 +128,7 @@ def test_model_renders_the_same():
     """The model with the kernel (radiance field and proposal networks) renders what it renders with torch."""
     outputs = {}
     for kind in ("torch", "warp"):
-        model = make_model(base_sampler="proposal", num_proposal_samples=(16,), proposal_resolutions=(8,),
+        model = make_model(base_sampler="proposal", proposal=ProposalConfig(num_samples=(16,), resolutions=(8,)),
                            plane_kernel=kind)
         model.eval()
         with torch.no_grad():

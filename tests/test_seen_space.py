@@ -12,6 +12,8 @@ from nerfstudio.utils.eval_utils import eval_setup
 
 from gear_nerfstudio.fields.planes import normalize_positions
 from gear_nerfstudio.fields.seen_space import SeenSpace, distinct_cameras, views_seeing, world_positions
+from gear_nerfstudio.model.rendering import FullImageRenders
+from gear_nerfstudio.model.sampling import ProposalConfig
 from tests.test_gear_model import make_model
 
 SIZE = 64
@@ -68,7 +70,9 @@ def test_evaluation_renders_take_density_only_where_min_views_training_cameras_s
     points, times = POINTS[:2], torch.zeros(2, 1)
     for min_views, seen_by_one in ((2, False), (1, True), (0, True)):
         model = make_model(
-            base_sampler=base_sampler, num_proposal_samples=(16,), proposal_resolutions=(8,), min_views=min_views
+            base_sampler=base_sampler,
+            proposal=ProposalConfig(num_samples=(16,), resolutions=(8,)),
+            render=FullImageRenders(min_views=min_views),
         )
         model.see_from(facing_cameras(copies=2))
         fields = [model.field.density_fn, *(net.density_fn for net in model.proposal_networks)]
@@ -96,15 +100,15 @@ def test_a_loaded_run_renders_with_the_space_its_training_cameras_see(tiny_run, 
     (5 cameras, cam00 held out): the rig's 4 other cameras, once each over the 3 frames; by default (0) none."""
     _, _, first, _ = tiny_run
     _, pipeline, _, _ = eval_setup(first / "config.yml", test_mode="test")
-    assert pipeline.model.config.min_views == 0 and pipeline.model.field.seen_space is None
-    config = tmp_path / "config.yml"  # the run's config with `min_views: 2` under `model:`, as a user would set it
+    assert pipeline.model.config.render.min_views == 0 and pipeline.model.field.seen_space is None
+    config = tmp_path / "config.yml"  # the run's config with `min_views: 2` under `render:`, as a user would set it
     text = (first / "config.yml").read_text()
     assert text.count("min_views: 0") == 1
     config.write_text(text.replace("min_views: 0", "min_views: 2"))
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
     model = pipeline.model
     seen = model.field.seen_space
-    assert seen is not None and seen.min_views == model.config.min_views == 2
+    assert seen is not None and seen.min_views == model.config.render.min_views == 2
     assert all(net.seen_space is seen for net in model.proposal_networks)
     assert len(seen.cameras) == 4
     outputs = pipeline.datamanager.train_dataparser_outputs

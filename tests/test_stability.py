@@ -29,6 +29,7 @@ from gear_nerfstudio.fields.gear_field import GearField, temporal_resolutions
 from gear_nerfstudio.fields.gear_function import gear_level
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
 from gear_nerfstudio.model.gear_model import GearNeRFModelConfig
+from gear_nerfstudio.model.sampling import ProposalConfig
 from gear_nerfstudio.model.split_sampler import split_ray_samples
 from gear_nerfstudio.pipeline import GearPipelineConfig
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
@@ -137,8 +138,7 @@ def test_model_is_finite_for_huge_and_tiny_densities(raw, zero_length, proposal)
     model = make_model(
         metadata={"near": near, "far": far, "num_frames": 4},
         base_sampler="proposal" if proposal else "uniform",
-        num_proposal_samples=(8,),
-        proposal_resolutions=(8,),
+        proposal=ProposalConfig(num_samples=(8,), resolutions=(8,)),
     )
     force_gears_in_upper_half(model, 4)
     set_raw_density(model, raw)
@@ -269,7 +269,7 @@ def test_one_frame_field_and_model():
     assert temporal_resolutions(4, 1) == [1, 1, 1, 1] and temporal_resolutions(1, 1) == [1]
     assert temporal_resolutions(6, 0) == [1] * 6
     model = make_model(metadata={"near": 0.5, "far": 4.5, "num_frames": 1}, base_sampler="proposal",
-                       num_proposal_samples=(8,), proposal_resolutions=(8,))
+                       proposal=ProposalConfig(num_samples=(8,), resolutions=(8,)))
     force_gears_in_upper_half(model, 4)
     model.train()
     assert model.field.time_resolutions == [1, 1, 1, 1]
@@ -453,7 +453,7 @@ def test_all_black_and_all_white_images(value):
 @pytest.mark.parametrize("base_sampler", ["uniform", "proposal"])
 def test_bfloat16_autocast_on_the_cpu(base_sampler):
     """torch.autocast(cpu, bfloat16): outputs, losses and gradients finite, weights valid, same splits."""
-    model = make_model(base_sampler=base_sampler, num_proposal_samples=(8,), proposal_resolutions=(8,))
+    model = make_model(base_sampler=base_sampler, proposal=ProposalConfig(num_samples=(8,), resolutions=(8,)))
     force_gears_in_upper_half(model, 4)
     model.eval()
     with torch.no_grad():

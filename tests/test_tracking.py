@@ -364,7 +364,7 @@ def test_tracking_renders_only_what_min_views_training_cameras_see_whatever_the_
     for arguments, expected in (({}, 4), ({"min_views": 2}, 2), ({"min_views": 0}, None)):
         _, pipeline, _, _ = cli.TrackCommand(load_config=trained[2], **arguments).load()
         seen = pipeline.model.field.seen_space
-        assert pipeline.model.config.min_views == 0
+        assert pipeline.model.config.render.min_views == 0
         assert seen is None if expected is None else seen.min_views == expected, (arguments, seen)
         assert all(network.seen_space is seen for network in pipeline.model.proposal_networks)
 

@@ -4,7 +4,7 @@ A radiance field is fitted only along the training rays. A point that no trainin
 one that a single camera sees is fixed only along that camera's rays (any depth that explains its pixels will do).
 The factorised planes still give such points a density, and at a novel view it shows as near blobs over the scene
 (`benchmarks/results/tracking_real.md`, issue 26: the held-out camera of `panoptic`, where those blobs lay in front of
-the people). With ``--pipeline.model.min-views`` set (off by default: docs/decisions.md says why),
+the people). With ``--pipeline.model.render.min-views`` set (off by default: docs/decisions.md says why),
 and always in `ns-gear-track` (its `--min-views`, 4 by default), renders keep the density only where at least that
 many training cameras see the point: it projects in front of them and inside their images.
 """

@@ -13,8 +13,7 @@ class GearUpdateConfig:
     enabled: bool = True
     """False: never update gears (ablation "no gear updates")."""
     iterations_per_epoch: int = 1500
-    """Iterations in an epoch, the unit of L and L' (a fixed count as in the paper's code, not a pass over the
-    data); the presets take 1/20 of their iterations."""
+    """Iterations in an epoch, the unit of L and L' (a fixed count, as the paper's code); presets: 1/20 of a run."""
     epochs_between_updates: float = 3.0
     """L: epochs of radiance-field training between updates."""
     epochs_after_updates: float = 10.0
@@ -32,8 +31,8 @@ class GearUpdateConfig:
     variance_threshold: float = 1e-4
     """Updates stop once the mean variance of the loss maps is below this."""
     mask_source: Literal["auto", "sam", "loss_threshold"] = "auto"
-    """Upshift masks: 'sam', the SAM decoder on the loss map's prompts (the paper); 'loss_threshold', the RGB loss
-    map above mean + k std ("w/o embedding"); 'auto': 'loss_threshold' with sam-builtin, else 'sam'."""
+    """Upshift masks: 'sam', the SAM decoder on the loss map's prompts (paper); 'loss_threshold', RGB loss above
+    mean + k std; 'auto': 'loss_threshold' with sam-builtin, else 'sam'."""
     loss_threshold_std: float = 2.0
     """k for mask_source 'loss_threshold'."""
     rays_per_set: int = 4096
@@ -41,26 +40,21 @@ class GearUpdateConfig:
     stay_weight: float = 1.0
     """lambda_stay of Eq 10."""
     static_views: int = 8
-    """S_static, an addition to Eq 10: per update view, this many other training cameras at its frame pull their
-    still pixels' rays to gear 1; 0: off, as without the motion gate (``motion_threshold`` 0)."""
+    """S_static (added to Eq 10): other training cameras per update view whose still pixels' rays go to gear 1;
+    0: off."""
     static_weight: float = 3.0
     """Weight of S_static's mean in Eq 10."""
     margin: float = 0.25
     """Points are pulled this far inside the interval of their target level."""
     max_steps: int = 100
-    """Most gradient steps on the gear function per update (Eq 11, repeated until the points reach their target
-    levels)."""
+    """Most gradient steps of Eq 11 per update (repeated until the points reach their target levels)."""
     max_points: int = 8192
-    """Points per set (S_upshift, S_stay) in the Eq 11 steps; larger sets are drawn by weight (``select_points``),
-    so that a step costs the same whatever the rays and samples per ray."""
+    """Points per set (S_upshift, S_stay) in the Eq 11 steps; larger sets are drawn by weight."""
     motion_threshold: float = 0.03
-    """Mean absolute RGB change over time (patch average, in [0, 1]) for a patch to count as moving;
-    0 turns the motion gate off (the paper's behaviour)."""
+    """Mean absolute RGB change over time (patch mean, in [0, 1]) of a moving patch; 0: no motion gate (paper)."""
     guard_tolerance: float = 0.1
-    """The guard: each update is reviewed L epochs later (``GearUpdater.review``); when its training views then
-    render more than this many dB worse than just before it, it is undone and no further update runs."""
+    """dB: an update whose training views render this much worse L epochs later is undone, and updates stop."""
     measure_held_out: bool = True
-    """Log the held-out camera's PSNR, at the times of each update's views, before it and at its review (measured
-    only: the guard decides on training views)."""
+    """Log the held-out camera's PSNR at each update's times, before it and at its review (not used to decide)."""
     motion_frames: int = 8
     """Other frames of the same camera compared with the view's frame (spread over the video)."""

@@ -39,8 +39,8 @@ from gear_nerfstudio.model.image_render import render_image
 from gear_nerfstudio.model.losses import GearLosses, LossWeights
 from gear_nerfstudio.model.metrics import ImageMetrics, near_layer, psnr
 from gear_nerfstudio.model.moving_region import EvalViews, region_sums
-from gear_nerfstudio.model.rendering import GearRenderer, RenderRequest
-from gear_nerfstudio.model.sampling import GearSampler, ProposalSchedule, SampleCounts
+from gear_nerfstudio.model.rendering import FullImageRenders, GearRenderer, RenderRequest
+from gear_nerfstudio.model.sampling import GearSampler, ProposalConfig, SampleCounts
 
 
 @dataclass
@@ -53,9 +53,11 @@ class GearNeRFModelConfig(ModelConfig):
     collider_params: tyro.conf.Suppress[Optional[Dict[str, float]]] = None
     """Not used: near_plane / far_plane below."""
     loss_coefficients: tyro.conf.Suppress[Dict[str, float]] = field(default_factory=dict)
-    """Not used: each loss has its own multiplier below."""
+    """Not used: each loss has its own multiplier (losses)."""
     prompt: tyro.conf.Suppress[Optional[str]] = None
     """Not used (a text prompt for language-field methods)."""
+    eval_num_rays_per_chunk: tyro.conf.Suppress[int] = 4096
+    """Not used: full-image renders are chunked by samples (render.chunk_samples)."""
 
     near_plane: Optional[float] = None
     """Near plane in scene units; None takes ``metadata["near"]`` from the dataparser."""
@@ -79,11 +81,10 @@ class GearNeRFModelConfig(ModelConfig):
     gear_time_resolution: Optional[int] = None
     """Temporal resolution of k'; None uses num_frames."""
     time_resolutions: Optional[Tuple[int, ...]] = None
-    """Rows of each gear's space-time planes k^G, one value per gear; None: linear from gear 1's rows
-    (``gear1_row_fraction``) to num_frames at the top gear (Sec 4.4)."""
+    """Rows of each gear's space-time planes k^G; None: from gear1_row_fraction (Sec 4.4)."""
     gear1_row_fraction: float = 0.0
-    """Rows of gear 1's space-time planes as a fraction of num_frames, growing linearly to num_frames at the top
-    gear; 0: the paper's single row (Sec 4.4), a static gear 1. Ignored when ``time_resolutions`` is set."""
+    """Gear 1's space-time rows as a fraction of num_frames, linear to num_frames at the top gear; 0: one row, the
+    paper's static gear 1 (Sec 4.4)."""
     geo_feat_dim: int = 15
     """Features from the density MLP to the colour MLP."""
     hidden_dim: int = 64
@@ -93,14 +94,9 @@ class GearNeRFModelConfig(ModelConfig):
     sam_dim: int = 256
     """Dimension of the SAM encoder features."""
     appearance_dim: int = 16
-    """Channels of the per-camera appearance code in the colour MLP (exposure, white balance); 0: off. Other
-    cameras (held-out, viewer) take the training cameras' mean code."""
-    min_views: int = 0
-    """Evaluation renders (viewer, ns-render, ns-eval) keep the density only where at least this many training
-    cameras (all of a smaller rig's) see a point; 0: all space, as training."""
+    """Channels of the per-camera appearance code (exposure, white balance); 0: off. New cameras take the mean."""
     initial_density: Optional[float] = None
-    """Density per scene unit the radiance field starts from (the density MLP's output bias); None: PyTorch's
-    initialisation, about exp(-1) = 0.37 (K-Planes)."""
+    """Density per scene unit the field starts from (the density MLP's bias); None: PyTorch's, about 0.37."""
     plane_kernel: Literal["torch", "warp"] = "torch"
     """Plane lookups: "torch" (grid_sample) or "warp" (one fused kernel, same values; the ``kernel`` extra)."""
     sam_head_dim: Optional[int] = 32
@@ -111,57 +107,15 @@ class GearNeRFModelConfig(ModelConfig):
     """A base sample at gear p is split into split_base^(p-1) samples (Sec 4.4)."""
     base_sampler: Literal["uniform", "proposal"] = "uniform"
     """Base samples: stratified uniform between near and far (paper) or a proposal network (K-Planes)."""
-    num_proposal_samples: Tuple[int, ...] = (256, 128)
-    """Samples per ray of each proposal iteration."""
-    proposal_resolutions: Tuple[int, ...] = (128, 256)
-    """Spatial resolution of each proposal network's planes."""
-    proposal_feature_dim: int = 8
-    """Plane channels of the proposal networks."""
-    proposal_time_resolution: Optional[int] = None
-    """Temporal resolution of the proposal networks; None uses half the frames (K-Planes)."""
-    proposal_warmup: int = 5000
-    """Scales the proposal update interval from 1 to proposal_update_every over this many steps."""
-    proposal_update_every: int = 5
-    """Update the proposal networks every this many steps after the warmup."""
-    use_proposal_weight_anneal: bool = True
-    """Anneal the proposal weights before PDF sampling (Mip-NeRF 360, Eq 18)."""
-    proposal_weights_anneal_slope: float = 10.0
-    """Slope of the annealing function."""
-    proposal_weights_anneal_max_num_iters: int = 1000
-    """Iterations over which the annealing reaches 1."""
+    proposal: ProposalConfig = field(default_factory=ProposalConfig)
+    """The proposal networks (base_sampler "proposal")."""
     background_color: Literal["random", "last_sample", "black", "white"] = "last_sample"
     """Background colour; 'last_sample': each ray's last sample's colour (as nerfacto, for captures without
     alpha)."""
-    sam_loss_mult: float = 1.0
-    """Weight of L_SAM (Eq 9), applied when the batch has "sam_features"."""
-    plane_tv_mult: float = 2e-4
-    """Total variation of the radiance planes (K-Planes DyNeRF)."""
-    l1_time_planes_mult: float = 1e-4
-    """L1 deviation of the space-time planes from 1 (K-Planes DyNeRF)."""
-    time_smoothness_mult: float = 1e-3
-    """Second difference along t of the space-time planes (K-Planes DyNeRF)."""
-    plane_tv_proposal_mult: float = 2e-4
-    """Plane TV of the proposal networks (K-Planes DyNeRF)."""
-    l1_time_planes_proposal_mult: float = 1e-4
-    """L1 time planes of the proposal networks (K-Planes DyNeRF)."""
-    time_smoothness_proposal_mult: float = 1e-5
-    """Time smoothness of the proposal networks (K-Planes DyNeRF)."""
-    interlevel_loss_mult: float = 1.0
-    """Proposal (interlevel) loss, proposal base sampler only."""
-    distortion_loss_mult: float = 0.0
-    """Weight of the distortion loss (Mip-NeRF 360) on the base samples, proposal base sampler only; 0: off."""
-    render_outputs: Tuple[str, ...] = ("rgb", "depth", "accumulation", "gear")
-    """Outputs of full-image renders (viewer, ns-render, ns-eval); add "sam", "gear_level" or "num_samples" to
-    compute those as well (the SAM feature map costs an MLP per sample and 256 channels per pixel)."""
-    render_num_samples: Optional[int] = None
-    """n at full-image renders (viewer, ns-render, ns-eval, the gear updates' views, tracking); None: num_samples.
-    Fewer is faster at a small change of the image (`benchmarks/results/render_speed.md`)."""
-    render_num_proposal_samples: Optional[Tuple[int, ...]] = None
-    """Samples of each proposal iteration at full-image renders (proposal base sampler); None:
-    num_proposal_samples."""
-    render_chunk_samples: Optional[int] = None
-    """Field samples evaluated at once in full-image renders (the memory bound; a chunk takes as many rays as fit);
-    None: 2^15 on the CPU, 2^21 on a GPU."""
+    losses: LossWeights = field(default_factory=LossWeights)
+    """The multiplier of each loss."""
+    render: FullImageRenders = field(default_factory=FullImageRenders)
+    """Full-image renders (viewer, ns-render, ns-eval, the gear updates' views, tracking)."""
 
 
 @contextlib.contextmanager
@@ -213,34 +167,29 @@ class GearNeRFModel(Model):
         )
 
         self.proposal_networks = torch.nn.ModuleList()
+        proposal = config.proposal
         if config.base_sampler == "proposal":
-            time_resolution = config.proposal_time_resolution or max(1, self.num_frames // 2)
-            for i in range(len(config.num_proposal_samples)):
+            time_resolution = proposal.time_resolution or max(1, self.num_frames // 2)
+            for i in range(len(proposal.num_samples)):
                 self.proposal_networks.append(
                     ProposalDensityField(
                         self.scene_box.aabb,
-                        resolution=config.proposal_resolutions[min(i, len(config.proposal_resolutions) - 1)],
+                        resolution=proposal.resolutions[min(i, len(proposal.resolutions) - 1)],
                         time_resolution=time_resolution,
-                        feature_dim=config.proposal_feature_dim,
+                        feature_dim=proposal.feature_dim,
                         spatial_distortion=contraction,
                         plane_kernel=config.plane_kernel,
                     )
                 )
+        render = config.render
         self.sampler = GearSampler(
-            SampleCounts(config.num_samples, config.num_proposal_samples),
+            SampleCounts(config.num_samples, proposal.num_samples),
             SampleCounts(
-                config.render_num_samples or config.num_samples,
-                config.render_num_proposal_samples or config.num_proposal_samples,
+                render.num_samples or config.num_samples, render.num_proposal_samples or proposal.num_samples
             ),
             config.split_base,
             self.proposal_networks,
-            ProposalSchedule(
-                config.proposal_warmup,
-                config.proposal_update_every,
-                config.use_proposal_weight_anneal,
-                config.proposal_weights_anneal_slope,
-                config.proposal_weights_anneal_max_num_iters,
-            ),
+            proposal,
             unbounded,
         )
 
@@ -254,21 +203,7 @@ class GearNeRFModel(Model):
 
         self.renderer = GearRenderer(config.background_color, config.num_gears)
         self.losses = GearLosses(
-            LossWeights(
-                sam=config.sam_loss_mult,
-                field={
-                    "plane_tv": config.plane_tv_mult,
-                    "l1_time_planes": config.l1_time_planes_mult,
-                    "time_smoothness": config.time_smoothness_mult,
-                },
-                proposal={
-                    "plane_tv": config.plane_tv_proposal_mult,
-                    "l1_time_planes": config.l1_time_planes_proposal_mult,
-                    "time_smoothness": config.time_smoothness_proposal_mult,
-                },
-                interlevel=config.interlevel_loss_mult,
-                distortion=config.distortion_loss_mult,
-            ),
+            config.losses,
             self.renderer.rgb,
             self.proposal_networks,
         )
@@ -277,7 +212,7 @@ class GearNeRFModel(Model):
         """Extra outputs of full-image renders (``get_outputs_for_camera``), such as the viewer's tracked mask."""
         self.warned_no_time = False
         self.extra_outputs: Set[str] = set()
-        """Outputs that full-image renders compute beside ``render_outputs`` (``rendering``)."""
+        """Outputs that full-image renders compute beside ``render.outputs`` (``rendering``)."""
         self.register_buffer("training_depth", torch.zeros(()))
         self.eval_views: Optional[EvalViews] = None
         """The evaluation views' cameras, names and moving regions (set by the pipeline): with them, image metrics
@@ -345,7 +280,7 @@ class GearNeRFModel(Model):
 
     @contextlib.contextmanager
     def rendering(self, *names: str) -> Iterator[None]:
-        """Full-image renders inside also compute the outputs ``names`` (beside the config's ``render_outputs``)."""
+        """Full-image renders inside also compute the outputs ``names`` (beside the config's ``render.outputs``)."""
         before = self.extra_outputs
         self.extra_outputs = before | set(names)
         try:
@@ -356,11 +291,11 @@ class GearNeRFModel(Model):
     @torch.no_grad()
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
         """Full-image renders: sparse forward passes (``RenderRequest``) of the outputs asked for (the config's
-        ``render_outputs`` and those of ``rendering``), chunk by chunk (``image_render.render_image``), with the
+        ``render.outputs`` and those of ``rendering``), chunk by chunk (``image_render.render_image``), with the
         render sample counts."""
-        names = frozenset(self.config.render_outputs) | self.extra_outputs
+        names = frozenset(self.config.render.outputs) | self.extra_outputs
         request = RenderRequest(names | {"num_samples"}, sparse=True)
-        chunk_samples = self.config.render_chunk_samples or (1 << 15 if self.device.type == "cpu" else 1 << 21)
+        chunk_samples = self.config.render.chunk_samples or (1 << 15 if self.device.type == "cpu" else 1 << 21)
         with self.sampler.rendering() as num_samples:
             return render_image(
                 lambda rays: self.get_outputs(self.collider(rays.to(self.device)), request),
@@ -394,7 +329,7 @@ class GearNeRFModel(Model):
     @torch.no_grad()
     def render_view(self, camera: Cameras) -> Dict[str, Tensor]:
         """A full render of one camera in evaluation mode (no sample jitter), restoring the mode afterwards, with the
-        SAM feature map (Eq 8) beside the config's ``render_outputs`` (the gear updates' loss maps use it)."""
+        SAM feature map (Eq 8) beside the config's ``render.outputs`` (the gear updates' loss maps use it)."""
         rays = camera.to(self.device).generate_rays(camera_indices=0, keep_shape=True)
         with evaluating(self), self.rendering("sam"):
             return self.get_outputs_for_camera_ray_bundle(rays)
@@ -402,7 +337,7 @@ class GearNeRFModel(Model):
     def see_from(self, cameras: Cameras, min_views: Optional[int] = None) -> None:
         """Renders in evaluation mode keep the density where at least ``min_views`` (default: the config's) of these
         training cameras see a point (`fields.seen_space.SeenSpace`); nothing changes when it is 0."""
-        min_views = self.config.min_views if min_views is None else min_views
+        min_views = self.config.render.min_views if min_views is None else min_views
         seen = None
         if min_views > 0:
             seen = SeenSpace(cameras, min_views, self.field.aabb, self.field.spatial_distortion)

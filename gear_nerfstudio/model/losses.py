@@ -19,18 +19,26 @@ REGULARISERS = ("plane_tv", "l1_time_planes", "time_smoothness")
 
 @dataclass
 class LossWeights:
-    """The multiplier of each loss (the model's config)."""
+    """The multiplier of each loss."""
 
-    sam: float
-    """L_SAM (Eq 9)."""
-    field: Dict[str, float]
-    """Each of ``REGULARISERS`` on the radiance planes."""
-    proposal: Dict[str, float]
-    """Each of ``REGULARISERS`` on the proposal networks' planes."""
-    interlevel: float
-    """Proposal (interlevel) loss."""
-    distortion: float
-    """Distortion loss (Mip-NeRF 360) on the base samples; 0: off."""
+    sam: float = 1.0
+    """L_SAM (Eq 9), applied when the batch has "sam_features"."""
+    plane_tv: float = 2e-4
+    """Total variation of the radiance planes (K-Planes DyNeRF)."""
+    l1_time_planes: float = 1e-4
+    """L1 deviation of the radiance space-time planes from 1 (K-Planes DyNeRF)."""
+    time_smoothness: float = 1e-3
+    """Second difference along t of the radiance space-time planes (K-Planes DyNeRF)."""
+    plane_tv_proposal: float = 2e-4
+    """Plane TV of the proposal networks (K-Planes DyNeRF)."""
+    l1_time_planes_proposal: float = 1e-4
+    """L1 time planes of the proposal networks (K-Planes DyNeRF)."""
+    time_smoothness_proposal: float = 1e-5
+    """Time smoothness of the proposal networks (K-Planes DyNeRF)."""
+    interlevel: float = 1.0
+    """Proposal (interlevel) loss, proposal base sampler only."""
+    distortion: float = 0.0
+    """Distortion loss (Mip-NeRF 360) on the base samples, proposal base sampler only; 0: off."""
 
 
 class GearLosses:
@@ -64,11 +72,11 @@ class GearLosses:
         if not training:
             return losses
         for name in REGULARISERS:
-            losses[name] = weights.field[name] * outputs[f"regulariser_{name}"]
+            losses[name] = getattr(weights, name) * outputs[f"regulariser_{name}"]
         if "weights_list" in outputs:
             proposal = [net.regularisers() for net in self.proposal_networks]
             for name in REGULARISERS:
-                losses[f"{name}_proposal"] = weights.proposal[name] * sum(r[name] for r in proposal)
+                losses[f"{name}_proposal"] = getattr(weights, f"{name}_proposal") * sum(r[name] for r in proposal)
             losses["interlevel_loss"] = weights.interlevel * interlevel_loss(
                 outputs["weights_list"], outputs["ray_samples_list"]
             )

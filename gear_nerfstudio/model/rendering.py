@@ -27,6 +27,23 @@ VISIBLE_WEIGHT = 1e-5
 """Smallest weight w_i of a sample whose colour and SAM embedding a sparse render computes."""
 
 
+@dataclass
+class FullImageRenders:
+    """Settings of full-image renders (viewer, ns-render, ns-eval, the gear updates' views, tracking)."""
+
+    outputs: Tuple[str, ...] = ("rgb", "depth", "accumulation", "gear")
+    """Outputs computed; add "sam", "gear_level" or "num_samples" (the SAM map costs an MLP per sample)."""
+    num_samples: Optional[int] = None
+    """n, base samples per ray; None: the model's num_samples. Fewer is faster, at a small change of the image."""
+    num_proposal_samples: Optional[Tuple[int, ...]] = None
+    """Samples of each proposal iteration; None: the proposal networks' num_samples."""
+    chunk_samples: Optional[int] = None
+    """Field samples evaluated at once (the memory bound); None: 2^15 on the CPU, 2^21 on a GPU."""
+    min_views: int = 0
+    """Keep the density only where at least this many training cameras (all of a smaller rig's) see a point; 0:
+    all space, as training. Evaluation renders only."""
+
+
 @dataclass(frozen=True)
 class RenderRequest:
     """What a render computes: the outputs ``names``, and whether it is sparse (full-image renders): colour and SAM

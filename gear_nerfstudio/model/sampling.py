@@ -55,18 +55,26 @@ class SampleCounts:
 
 
 @dataclass
-class ProposalSchedule:
-    """When the proposal networks update and how their weights are annealed (K-Planes, Mip-NeRF 360)."""
+class ProposalConfig:
+    """The proposal networks of the proposal base sampler (K-Planes): samples, planes, update schedule."""
 
-    warmup: int
+    num_samples: Tuple[int, ...] = (256, 128)
+    """Samples per ray of each proposal iteration."""
+    resolutions: Tuple[int, ...] = (128, 256)
+    """Spatial resolution of each proposal network's planes."""
+    feature_dim: int = 8
+    """Plane channels of the proposal networks."""
+    time_resolution: Optional[int] = None
+    """Temporal resolution of the proposal networks; None uses half the frames (K-Planes)."""
+    warmup: int = 5000
     """Steps over which the update interval grows from 1 to ``update_every``."""
-    update_every: int
+    update_every: int = 5
     """Update the proposal networks every this many steps after the warmup."""
-    anneal: bool
+    weight_anneal: bool = True
     """Anneal the proposal weights before PDF sampling (Mip-NeRF 360, Eq 18)."""
-    anneal_slope: float
+    anneal_slope: float = 10.0
     """Slope of the annealing function."""
-    anneal_iterations: int
+    anneal_iterations: int = 1000
     """Iterations over which the annealing reaches 1."""
 
 
@@ -78,7 +86,7 @@ class GearSampler(nn.Module):
         render_counts: samples per ray of full-image renders (``rendering``), where they differ.
         split_base: 2 in the paper.
         proposal_networks: the proposal density fields (owned by the model); none: stratified uniform base samples.
-        schedule: the proposal networks' schedule (with proposal networks).
+        schedule: the proposal networks' update schedule and annealing (with proposal networks).
         unbounded: the proposal sampler starts from samples uniform in disparity far away.
     """
 
@@ -88,7 +96,7 @@ class GearSampler(nn.Module):
         render_counts: SampleCounts,
         split_base: int,
         proposal_networks: Sequence[ProposalDensityField] = (),
-        schedule: Optional[ProposalSchedule] = None,
+        schedule: Optional[ProposalConfig] = None,
         unbounded: bool = False,
     ) -> None:
         super().__init__()
@@ -102,9 +110,9 @@ class GearSampler(nn.Module):
         assert schedule is not None
         if len(render_counts.num_proposal_samples) != len(self.proposal_networks):
             raise InputError(
-                f"--pipeline.model.render-num-proposal-samples has {len(render_counts.num_proposal_samples)} values "
+                f"--pipeline.model.render.num-proposal-samples has {len(render_counts.num_proposal_samples)} values "
                 f"but the model has {len(self.proposal_networks)} proposal iterations "
-                "(--pipeline.model.num-proposal-samples)"
+                "(--pipeline.model.proposal.num-samples)"
             )
 
         def update_schedule(step: int) -> float:
@@ -152,7 +160,7 @@ class GearSampler(nn.Module):
         """Proposal weight annealing (Mip-NeRF 360, Eq 18) and the proposal networks' update schedule, when the
         proposal base sampler anneals; none otherwise."""
         sampler, schedule = self.base, self.schedule
-        if not isinstance(sampler, ProposalNetworkSampler) or schedule is None or not schedule.anneal:
+        if not isinstance(sampler, ProposalNetworkSampler) or schedule is None or not schedule.weight_anneal:
             return []
 
         def set_anneal(step: int) -> None:

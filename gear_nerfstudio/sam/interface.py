@@ -48,7 +48,7 @@ def median_norm(features: np.ndarray) -> float:
     """Median feature norm of the cells (rows, cols, C) that carry features; 0 when none does.
 
     Cells that carry none are left out: rays of a render that meet nothing (space that too few training cameras
-    see, `GearNeRFModelConfig.min_views`) and black pixels of an image. A view that reaches past what the cameras
+    see, `GearNeRFModelConfig.render.min_views`) and black pixels of an image. A view that reaches past what the cameras
     saw, such as the viewer's wide one, can have more of them than not, and their zero median would scale
     everything else up a millionfold (the segmentation then split a clicked object into single cells).
     """

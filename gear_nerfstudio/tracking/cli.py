@@ -109,7 +109,7 @@ class TrackCommand:
     masks in most training views that see them, at the same time, put inside it (`agreement.agreed_mask`)."""
     min_views: int = 4
     """Render every view with the density only where at least this many training cameras see a point, whatever
-    the run's `--pipeline.model.min-views`; 0: all space."""
+    the run's `--pipeline.model.render.min-views`; 0: all space."""
     min_accumulation: float = HIT_ACCUMULATION
     """A click ray whose accumulated density stays below this hits nothing (lower it for a model trained
     only briefly, whose density is still faint)."""
