@@ -1,4 +1,4 @@
-"""What the benchmarks share: paths, child commands, the timed ns-train child, the machine line, pages, tables, pictures."""
+"""What the benchmarks share: paths, child commands, the timed ns-train child, the machine line, pages, pictures."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import datetime
 import json
 import os
 import platform
+import re
 import resource
 import shlex
 import shutil
@@ -213,6 +214,15 @@ def table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> List[str]:
     """A Markdown table's lines: the header, its rule, a line per row."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     return lines + ["| " + " | ".join(map(str, row)) + " |" for row in rows]
+
+
+def fill_page(path: Path, parts: Dict[str, str]) -> None:
+    """Write each of ``parts`` into a hand-kept page between its lines ``<!-- NAME -->`` and ``<!-- /NAME -->`` (a
+    missing page: the parts alone)."""
+    text = path.read_text() if path.is_file() else "".join(f"<!-- {n} -->\n<!-- /{n} -->\n\n" for n in parts)
+    for name, part in parts.items():
+        text = re.sub(rf"(?s)(<!-- {name} -->\n).*?(<!-- /{name} -->)", lambda m: f"{m[1]}{part}\n{m[2]}", text)
+    path.write_text(text)
 
 
 def write_report(text: str, *paths: Optional[Path], append: bool = False) -> None:
