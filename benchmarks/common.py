@@ -1,18 +1,21 @@
-"""What the benchmarks share: paths, child commands, the timed ns-train child, the machine line, tables, pictures."""
+"""What the benchmarks share: paths, child commands, the timed ns-train child, the machine line, pages, pictures."""
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
 import platform
+import re
 import resource
+import shlex
 import shutil
 import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -195,10 +198,37 @@ def mean(values: List[Tuple[float, ...]], index: int) -> Optional[float]:
     return float(np.mean([v[index] for v in values])) if values else None
 
 
-def write_report(path: Optional[Path], text: str, append: bool = False) -> None:
-    """Print ``text`` and write (or append) it to ``path`` when given."""
+def command_line() -> str:
+    """This benchmark's command as typed: ``python -m benchmarks <subcommand> [options]``."""
+    return "python -m benchmarks " + shlex.join(sys.argv[1:])
+
+
+def page(title: str, lines: Sequence[str], device: str = "cpu") -> str:
+    """A results page: the title, the command, the date and the machine, then ``lines``."""
+    today = datetime.date.today().isoformat()
+    header = [f"# {title}", "", f"Command: `{command_line()}`", "", f"Machine: {machine_description(device)}; {today}."]
+    return "\n".join([*header, "", *lines, ""])
+
+
+def table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> List[str]:
+    """A Markdown table's lines: the header, its rule, a line per row."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(map(str, row)) + " |" for row in rows]
+
+
+def fill_page(path: Path, parts: Dict[str, str]) -> None:
+    """Write each of ``parts`` into a hand-kept page between its lines ``<!-- NAME -->`` and ``<!-- /NAME -->`` (a
+    missing page: the parts alone)."""
+    text = path.read_text() if path.is_file() else "".join(f"<!-- {n} -->\n<!-- /{n} -->\n\n" for n in parts)
+    for name, part in parts.items():
+        text = re.sub(rf"(?s)(<!-- {name} -->\n).*?(<!-- /{name} -->)", lambda m: f"{m[1]}{part}\n{m[2]}", text)
+    path.write_text(text)
+
+
+def write_report(text: str, *paths: Optional[Path], append: bool = False) -> None:
+    """Print ``text`` and write (or append) it to each of ``paths`` that is not None."""
     print(text)
-    if path is not None:
+    for path in filter(None, paths):
         path.parent.mkdir(parents=True, exist_ok=True)
         with path.open("a" if append else "w") as handle:
             handle.write(text)

@@ -11,7 +11,7 @@ from typing import List, Tuple
 
 import torch
 
-from benchmarks.common import BIN, run_measured
+from benchmarks.common import BIN, page, run_measured, table, write_report
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
@@ -42,20 +42,15 @@ class Footprint:
         return runs + [Run("long (20 cameras x 300 frames)", "gear-nerf-small", long, 300)]
 
     def main(self) -> None:
-        rows = [
-            "| scene | method | iterations | parameters | in use | gears used | checkpoint MiB | peak RSS MiB | training s |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
+        rows = []
         for run in self.runs():
             total, in_use, gears, checkpoint, rss, seconds = self.measure(run)
-            rows.append(
-                f"| {run.name} | {run.method} | {run.iterations} | {total} | {in_use} | {gears} | "
-                f"{checkpoint / 2**20:.1f} | {rss / 2**20:.0f} | {seconds:.0f} |"
-            )
+            rows.append([run.name, run.method, run.iterations, total, in_use, gears, f"{checkpoint / 2**20:.1f}",
+                         f"{rss / 2**20:.0f}", f"{seconds:.0f}"])  # fmt: skip
             print(rows[-1], flush=True)
-        table = "\n".join(rows)
-        print(table)
-        (self.output / "footprint.md").write_text(table + "\n")
+        header = ["scene", "method", "iterations", "parameters", "in use", "gears used", "checkpoint MiB",
+                  "peak RSS MiB", "training s"]  # fmt: skip
+        write_report(page("What a scene costs", table(header, rows)), self.output / "footprint.md")
 
     def measure(self, run: Run) -> Tuple[int, int, str, int, int, float]:
         key = f"{run.spec.motion}-{run.spec.frames}x{run.spec.cameras}"

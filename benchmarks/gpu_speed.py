@@ -1,36 +1,29 @@
 """GPU speed at Neural 3D Video size (21 cameras at 1352 x 1014, synthetic, Technicolor layout): ``gear-nerf``
 against its one-gear twin, trained with nerfstudio's own Trainer without viewer, writers or checkpoints. Per method:
 pre-training, timed gear updates, host syncs per iteration, windows of timed iterations (ms, rays / s, peak GiB),
-full-frame renders, and variants on the same model (chunks, render sample counts, rays per batch, TF32, bfloat16,
-torch.compile, profiler, render stages). ``benchmarks/results/gpu_speed.md`` says what each measures."""
+full-frame renders, and variants on the same model (render chunks, render sample counts, rays per batch).
+``benchmarks/results/gpu_speed.md`` says what each measures."""
 
 from __future__ import annotations
 
 import collections
-import contextlib
 import copy
 import dataclasses
-import datetime
-import functools
-import shlex
 import statistics
-import sys
-import time
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple
+from typing import Any, Callable, Dict, List, Literal, Optional, Tuple
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer
 from torch import Tensor
 
-from benchmarks.common import machine_description, timed
+from benchmarks.common import page, table, timed, write_report
 from benchmarks.render_speed import set_render_counts
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gears.updater import GearUpdater
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_baseline
-from gear_nerfstudio.model import sampling
 from gear_nerfstudio.model.gear_model import evaluating
 from gear_nerfstudio.model.metrics import psnr
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
@@ -140,114 +133,19 @@ class Run:
             times = [self.timed(lambda: image.update(self.model.get_outputs_for_camera(camera))) for _ in range(count)]
             return times, image["rgb"]
 
-    def profile(self, iterations: int, work: Optional[Callable[[], Any]] = None) -> Tuple[float, float, float, str]:
-        """Per call over ``iterations`` profiled calls of ``work`` (a training iteration by default): GPU busy
-        milliseconds (the kernels' own time), host milliseconds in operators (the profiler's own overhead included)
-        and kernel launches; and the profiler's table of the operators and kernels by their own GPU time."""
-        activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
-        with torch.profiler.profile(activities=activities) as profiler:
-            for _ in range(iterations):
-                (work or self.iteration)()
-            self.synchronize()
-        events = profiler.key_averages()
-        kernels = [event for event in events if event.device_type == torch.autograd.DeviceType.CUDA]
-        busy_ms = sum(event.self_device_time_total for event in kernels) / 1000 / iterations
-        host_ms = sum(event.self_cpu_time_total for event in events) / 1000 / iterations
-        launches = sum(event.count for event in events if "LaunchKernel" in event.key) / iterations
-        return busy_ms, host_ms, launches, events.table(sort_by="self_device_time_total", row_limit=25)
-
-    def render_profile(self) -> Tuple[float, float, float, str]:
-        """``profile`` of one full-frame render of the held-out camera (after the renders above warmed it up)."""
-        camera = self.held_out_camera()
-        with evaluating(self.model):
-            return self.profile(1, lambda: self.model.get_outputs_for_camera(camera))
-
-
-@contextlib.contextmanager
-def patched(replacements: List[Tuple[Any, str, Callable[[Callable], Callable]]]) -> Iterator[None]:
-    """Inside, ``owner.name`` is ``wrap(owner.name)`` for each (owner, name, wrap); restored afterwards."""
-    saved = [(owner, name, name in vars(owner), getattr(owner, name)) for owner, name, _ in replacements]
-    for owner, name, wrap in replacements:
-        setattr(owner, name, wrap(getattr(owner, name)))
-    try:
-        yield
-    finally:
-        for owner, name, own, original in reversed(saved):
-            if own:
-                setattr(owner, name, original)
-            else:
-                delattr(owner, name)  # an instance attribute over the class's method
-
-
-def render_stages(run: Run, count: int) -> Dict[str, float]:
-    """Seconds per full-frame render spent in each stage of the render path (``GearNeRFModel.get_outputs``), each
-    call synchronised at both ends; nested stages (the proposal networks inside the base sampler, the plane features
-    inside the field's density) are also counted in their parents."""
-    model, field = run.model, run.model.field
-    stages = [
-        (model.sampler.base, "forward", "base samples (proposal sampler)"),
-        *[(net, "density_fn", "  proposal networks' density") for net in model.proposal_networks],
-        (field, "gear_levels", "gear levels of the base samples"),
-        (sampling, "split_ray_samples", "split sampler (Sec 4.4)"),
-        (field.gear_function, "forward", "gear function g (Eq 4), every call (the gear levels' included)"),
-        (field, "normalised_density", "field density"),
-        (field, "gear_features", "  plane features f (Eq 3, 6-7)"),
-        (field, "colour", "colour of the visible samples"),
-    ]
-    spent = {label: 0.0 for _, _, label in stages}
-
-    def timer(label: str) -> Callable[[Callable], Callable]:
-        def wrap(function: Callable) -> Callable:
-            def timed_call(*args: Any, **kwargs: Any) -> Any:
-                run.synchronize()
-                start = time.perf_counter()
-                result = function(*args, **kwargs)
-                run.synchronize()
-                spent[label] += time.perf_counter() - start
-                return result
-
-            return timed_call
-
-        return wrap
-
-    with patched([(owner, name, timer(label)) for owner, name, label in stages]):
-        times, _ = run.render(count)  # the warm-up render inside is counted too: count + 1 renders
-    return {"render": statistics.median(times), **{label: seconds / (count + 1) for label, seconds in spent.items()}}
-
-
-@contextlib.contextmanager
-def compiled_densities(model) -> Iterator[None]:
-    """Inside, the proposal networks' ``density_fn`` and the field's ``normalised_density`` run through
-    ``torch.compile`` (dynamic shapes: a render's chunks differ in size)."""
-    compiled = functools.partial(torch.compile, dynamic=True)
-    owners = [*model.proposal_networks, model.field]
-    names = ["density_fn"] * len(model.proposal_networks) + ["normalised_density"]
-    with patched([(owner, name, compiled) for owner, name in zip(owners, names)]):
-        yield
-
 
 def variants(run: Run, args: "GpuSpeed", reference: Tensor) -> List[Dict[str, Any]]:
-    """The variants of step 6 on ``run``'s trained model, each restored afterwards: the renders first, while the
-    model is the one that rendered ``reference``."""
+    """The variants on ``run``'s trained model, each restored afterwards: the renders first (PSNR against
+    ``reference``, the model's default render), then training at other batch sizes."""
     rows: List[Dict[str, Any]] = []
     config = run.model.config
 
     def render(variant: str) -> None:
         times, image = run.render(args.renders)
         memory = torch.cuda.max_memory_allocated() if run.cuda else None
-        rows.append({"variant": variant, "renders": times, "image": image.float(), "memory": memory})
+        rows.append({"variant": variant, "renders": times, "psnr": float(psnr(image.float(), reference)),
+                     "memory": memory})  # fmt: skip
 
-    if args.render_profile and run.cuda:
-        busy_ms, host_ms, launches, table = run.render_profile()
-        rows.append({"variant": "render, profiled", "busy_ms": busy_ms, "host_ms": host_ms, "launches": launches})
-        args.output.mkdir(parents=True, exist_ok=True)
-        (args.output / f"gpu_render_profile_{run.method}.txt").write_text(table)
-    if args.render_bf16:
-        with torch.autocast(device_type=run.model.device.type, dtype=torch.bfloat16):
-            render("render, bfloat16 autocast")
-    if args.render_compile:
-        with compiled_densities(run.model):
-            render("render, density functions compiled (torch.compile, dynamic shapes; compiled in the warm-up)")
     for chunk in args.render_chunks:
         config.render.chunk_samples = chunk
         render(f"render, chunks of {chunk:,} samples")
@@ -257,9 +155,6 @@ def variants(run: Run, args: "GpuSpeed", reference: Tensor) -> List[Dict[str, An
         chunk = f", chunks of {args.samples_chunk:,} samples" if args.samples_chunk else ""
         render(f"render, samples {counts}{chunk}")
     config.render.num_samples = config.render.num_proposal_samples = config.render.chunk_samples = None
-    for row in rows:
-        if "image" in row:
-            row["psnr"] = float(psnr(row.pop("image"), reference))
     sampler = run.trainer.pipeline.datamanager.train_pixel_sampler
     default_rays = sampler.num_rays_per_batch
     for rays in args.batches:
@@ -268,26 +163,11 @@ def variants(run: Run, args: "GpuSpeed", reference: Tensor) -> List[Dict[str, An
         rows.append({"variant": f"training, {rays} rays / batch", "rays": rays,
                      "windows": run.windows(args.windows // 2, args.window)})  # fmt: skip
     sampler.num_rays_per_batch = default_rays
-    if args.tf32:  # windows with and without TF32 in turn, so that both see the same stretch of training
-        timings: Dict[bool, List[float]] = {False: [], True: []}
-        default_tf32 = torch.backends.cuda.matmul.allow_tf32
-        for _ in range(args.windows // 2):
-            for tf32 in (False, True):
-                torch.backends.cuda.matmul.allow_tf32 = tf32
-                timings[tf32] += run.windows(1, args.window)
-        torch.backends.cuda.matmul.allow_tf32 = default_tf32
-        for tf32, label in ((False, "float32"), (True, "TF32")):
-            rows.append({"variant": f"training, {default_rays} rays / batch, {label} (in turn)", "rays": default_rays,
-                         "windows": timings[tf32]})  # fmt: skip
-    if args.profile and run.cuda:
-        busy_ms, host_ms, launches, table = run.profile(args.profile)
-        rows.append({"variant": "training, profiled", "busy_ms": busy_ms, "host_ms": host_ms, "launches": launches})
-        args.output.mkdir(parents=True, exist_ok=True)
-        (args.output / f"gpu_profile_{run.method}.txt").write_text(table)
     return rows
 
 
 def measure(method: str, args: "GpuSpeed") -> Dict[str, Any]:
+    """Pre-training, gear updates, host syncs, timed windows, renders and variants of one method."""
     run = Run(method, args)
     for _ in range(args.pretrain):
         run.iteration()
@@ -300,29 +180,18 @@ def measure(method: str, args: "GpuSpeed") -> Dict[str, Any]:
     run.samples_per_ray.clear()
     windows = run.windows(args.windows, args.window)
     train_memory = torch.cuda.max_memory_allocated() if run.cuda else None
-    samples_per_ray = float(torch.stack(run.samples_per_ray).mean())
     renders, image = run.render(args.renders)
-    render_memory = torch.cuda.max_memory_allocated() if run.cuda else None
     datamanager = run.trainer.pipeline.datamanager
     camera = datamanager.eval_dataset.cameras
     result = {
-        "method": method,
-        "rays": datamanager.config.train_num_rays_per_batch,
-        "base_samples": run.model.config.num_samples,
-        "frames": run.model.num_frames,
-        "windows": windows,
-        "samples_per_ray": samples_per_ray,
-        "train_memory": train_memory,
-        "renders": renders,
-        "render_size": (int(camera.width[0]), int(camera.height[0])),
-        "render_memory": render_memory,
-        "updates": updates,
-        "syncs": syncs,
-        "sync_iterations": args.sync_iterations,
-        "parameters": sum(p.numel() for p in run.model.parameters()),
+        "method": method, "rays": datamanager.config.train_num_rays_per_batch,
+        "base_samples": run.model.config.num_samples, "windows": windows,
+        "samples_per_ray": float(torch.stack(run.samples_per_ray).mean()), "train_memory": train_memory,
+        "renders": renders, "render_size": (int(camera.width[0]), int(camera.height[0])),
+        "render_memory": torch.cuda.max_memory_allocated() if run.cuda else None,
+        "updates": updates, "syncs": syncs, "parameters": sum(p.numel() for p in run.model.parameters()),
         "variants": variants(run, args, image),
-        "stages": render_stages(run, args.renders) if args.render_stages else {},
-    }
+    }  # fmt: skip
     del run
     if args.device == "cuda":
         torch.cuda.empty_cache()
@@ -333,100 +202,51 @@ def gib(value: Any) -> str:
     return "not measured (CPU)" if value is None else f"{value / 2**30:.2f}"
 
 
-def markdown(results: List[Dict[str, Any]], args: "GpuSpeed", command: str) -> str:
-    lines = [
-        "# GPU speed at Neural 3D Video size: gear-nerf and the one-gear baseline",
-        "",
-        f"Command: `{command}`",
-        "",
-        f"Machine: {machine_description(args.device)}. Date: {datetime.date.today().isoformat()}.",
-        "",
-        f"Scene: synthetic (`gear_nerfstudio.tools.synthetic`, mixed motion), Technicolor layout, {args.rows} x "
-        f"{args.cols} = {args.rows * args.cols} cameras at {args.width} x {args.height} (N3D's camera count and its "
-        f"usual downscale-2 resolution), {args.frames} frames; held-out camera {HELD_OUT_CAMERA}. "
-        + (
-            f"The models' planes are sized for {args.model_frames} frames (model `num_frames`), as for a "
-            f"{args.model_frames}-frame N3D video; the images span {args.frames} frames."
-            if args.model_frames
-            else "The models' planes are sized for the scene's frames."
-        ),
-        "",
-        f"Per method: {args.pretrain} training iterations, then (gear-nerf) {args.updates} gear updates by the "
-        f"pipeline's `GearUpdater`, then {args.warmup} warm-up iterations and {args.windows} windows of {args.window} "
-        f"timed iterations (`torch.cuda.synchronize` at window edges only). Seed {args.seed}.",
-        "",
-        "| method | rays / batch | base samples n | samples / ray (mean) | iteration ms: median [quartiles] (range) "
-        "| rays / s | peak train GiB | render ms / frame (FPS) | peak render GiB | parameters |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
+def iteration_ms(windows: List[float], rays: int) -> Tuple[str, str]:
+    """Median ms per iteration [quartiles] (range), and rays per second, of timed windows."""
+    ms = [1000 * w for w in windows]
+    median, (q1, _, q3) = statistics.median(ms), statistics.quantiles(ms, n=4)
+    return f"{median:.1f} [{q1:.1f}, {q3:.1f}] ({min(ms):.1f}-{max(ms):.1f})", f"{rays / median * 1000:,.0f}"
+
+
+def markdown(results: List[Dict[str, Any]], args: "GpuSpeed") -> str:
+    rows, variant_rows, lines = [], [], []
     for r in results:
-        ms = [1000 * w for w in r["windows"]]
-        q1, _, q3 = statistics.quantiles(ms, n=4)
-        median = statistics.median(ms)
         render_ms = 1000 * statistics.median(r["renders"])
-        lines.append(
-            f"| {r['method']} | {r['rays']} | {r['base_samples']} | {r['samples_per_ray']:.1f} | {median:.1f} "
-            f"[{q1:.1f}, {q3:.1f}] ({min(ms):.1f}-{max(ms):.1f}) | {r['rays'] / median * 1000:,.0f} "
-            f"| {gib(r['train_memory'])} | {render_ms:.0f} ({1000 / render_ms:.2f}) | {gib(r['render_memory'])} "
-            f"| {r['parameters']:,} |"
-        )
-    width, height = results[0]["render_size"]
-    lines += ["", f"Render: one full {width} x {height} frame, median of {args.renders}.", ""]
-    if any(r["variants"] for r in results):
-        lines += [
-            "Variants on the same trained model (training: median of the windows; renders: median, and PSNR against "
-            "the render of the row above):",
-            "",
-            "| method | variant | iteration ms: median (range) or render ms | rays / s or FPS | PSNR vs row above (dB) "
-            "| peak render GiB | profiled: GPU busy ms, host ms, kernel launches / iteration |",
-            "| --- | --- | --- | --- | --- | --- | --- |",
-        ]
-        for r in results:
-            for v in r["variants"]:
-                cells = [""] * 5
-                if "windows" in v:
-                    ms = [1000 * w for w in v["windows"]]
-                    median = statistics.median(ms)
-                    cells[:2] = f"{median:.1f} ({min(ms):.1f}-{max(ms):.1f})", f"{v['rays'] / median * 1000:,.0f}"
-                elif "renders" in v:
-                    ms = 1000 * statistics.median(v["renders"])
-                    cells[:4] = f"{ms:.0f}", f"{1000 / ms:.2f}", f"{v['psnr']:.1f}", gib(v["memory"])
-                else:
-                    cells[4] = f"{v['busy_ms']:.1f}, {v['host_ms']:.1f}, {v['launches']:.0f}"
-                lines.append("| " + " | ".join([r["method"], v["variant"], *cells]) + " |")
-        lines.append("")
-    for r in results:
-        if r["stages"]:
-            lines += [
-                f"Render stages of {r['method']} (seconds per frame, every stage synchronised at both ends, so the "
-                f"render takes {r['stages']['render']:.2f} s here; an indented stage is counted in the one above it "
-                "too):",
-                "",
-                *[f"- {label}: {seconds:.3f}" for label, seconds in r["stages"].items() if label != "render"],
-                "",
-            ]
-    for r in results:
+        rows.append([r["method"], r["rays"], r["base_samples"], f"{r['samples_per_ray']:.1f}",
+                     *iteration_ms(r["windows"], r["rays"]), gib(r["train_memory"]),
+                     f"{render_ms:.0f} ({1000 / render_ms:.2f})", gib(r["render_memory"]), f"{r['parameters']:,}"])
+        for v in r["variants"]:
+            ms = 1000 * statistics.median(v.get("renders", [0]))
+            cells = [f"{ms:.0f}", f"{1000 / ms:.2f}", f"{v['psnr']:.1f}", gib(v["memory"])] if "renders" in v else [
+                *iteration_ms(v["windows"], v["rays"]), "", ""]  # fmt: skip
+            variant_rows.append([r["method"], v["variant"], *cells])
         if r["updates"]:
-            lines.append(
-                f"Gear updates of {r['method']} (seconds each; gear shares of the views' visible surface after it):"
-            )
-            lines.append("")
-            for k, update in enumerate(r["updates"], start=1):
-                shares = " ".join(f"{update[key]:.2f}" for key in sorted(update) if key.startswith("gear_"))
-                lines.append(
-                    f"- update {k}: {update['seconds']:.2f} s, upshift mask area "
-                    f"{update.get('upshift_mask_area', float('nan')):.2f}, gears 1-{len(shares.split())}: {shares}"
-                )
-            lines.append("")
-    for r in results:
-        if r["syncs"] is None:
-            lines.append(f"Host syncs of {r['method']}: not measured (sync debug mode needs CUDA).")
-            continue
-        total = sum(r["syncs"].values()) / r["sync_iterations"]
-        where = ", ".join(f"{place} x{count / r['sync_iterations']:g}" for place, count in r["syncs"].most_common())
-        lines.append(f"Host syncs of {r['method']} per training iteration: {total:g} ({where or 'none'}).")
-        lines.append("")
-    return "\n".join(lines) + "\n"
+            lines += ["", f"Gear updates of {r['method']} (seconds each; gear shares of the views' visible surface):"]
+        for k, update in enumerate(r["updates"], start=1):
+            shares = [f"{update[key]:.2f}" for key in sorted(update) if key.startswith("gear_")]
+            area = update.get("upshift_mask_area", float("nan"))
+            lines.append(f"- update {k}: {update['seconds']:.2f} s, upshift mask area {area:.2f}, gears "
+                         f"1-{len(shares)}: {' '.join(shares)}")
+        if r["syncs"] is not None:
+            per = {place: count / args.sync_iterations for place, count in r["syncs"].most_common()}
+            where = ", ".join(f"{place} x{count:g}" for place, count in per.items()) or "none"
+            lines += ["", f"Host syncs of {r['method']} per training iteration: {sum(per.values()):g} ({where})."]
+    model_frames = f"{args.model_frames} frames (model `num_frames`)" if args.model_frames else "the scene's frames"
+    header = ["method", "rays / batch", "base samples n", "samples / ray (mean)",
+              "iteration ms: median [quartiles] (range)", "rays / s", "peak train GiB", "render ms / frame (FPS)",
+              "peak render GiB", "parameters"]  # fmt: skip
+    variant_header = ["method", "variant", "iteration ms or render ms", "rays / s or FPS",
+                      "PSNR vs the default render (dB)", "peak render GiB"]  # fmt: skip
+    width, height = results[0]["render_size"]
+    return page("GPU speed at Neural 3D Video size: gear-nerf and the one-gear baseline", [
+        f"Scene: synthetic (mixed motion), Technicolor layout, {args.rows} x {args.cols} cameras at {args.width} x "
+        f"{args.height}, {args.frames} frames, held-out camera {HELD_OUT_CAMERA}; planes sized for {model_frames}. Per "
+        f"method: {args.pretrain} training iterations, {args.updates} gear updates (gear-nerf), {args.warmup} warm-up "
+        f"iterations, {args.windows} timed windows of {args.window} iterations. Renders: one full {width} x {height} "
+        f"frame, median of {args.renders}. Seed {args.seed}.",
+        "", *table(header, rows), *(["", *table(variant_header, variant_rows)] if variant_rows else []), *lines,
+    ], args.device)  # fmt: skip
 
 
 @dataclasses.dataclass
@@ -454,26 +274,17 @@ class GpuSpeed:
     seed: int = 42
     batches: Tuple[int, ...] = ()
     """Also train at these rays per batch."""
-    tf32: bool = False
-    """Also train with and without TF32 products in turn."""
     render_chunks: Tuple[int, ...] = ()
     """Also render at these chunk sizes (field samples)."""
     render_samples: Tuple[str, ...] = ()
     """Also render at these sample counts, "P1,P2,N" each."""
     samples_chunk: Optional[int] = None
     """Chunk size of the --render-samples renders."""
-    profile: int = 0
-    """Profile this many training iterations (CUDA)."""
-    render_profile: bool = False
-    render_bf16: bool = False
-    render_compile: bool = False
-    render_stages: bool = False
     output: Path = Path("outputs/gpu_speed")
     results: Optional[Path] = None
     """Also write gpu_speed.md here."""
 
     def main(self) -> None:
-        command = "python -m benchmarks " + shlex.join(sys.argv[1:])
         if not (self.scene / "cameras_parameters.txt").is_file():
             spec = SyntheticSpec(dataset="technicolor", width=self.width, height=self.height, frames=self.frames,
                                  rows=self.rows, cols=self.cols)  # fmt: skip
@@ -481,7 +292,6 @@ class GpuSpeed:
         results = []
         for method in self.methods:
             results.append(measure(method, self))
-            print(markdown(results, self, command), flush=True)
-        for folder in [self.output] + ([self.results] if self.results else []):
-            folder.mkdir(parents=True, exist_ok=True)
-            (folder / "gpu_speed.md").write_text(markdown(results, self, command))
+            print(markdown(results, self), flush=True)
+        paths = [folder / "gpu_speed.md" for folder in (self.output, self.results) if folder is not None]
+        write_report(markdown(results, self), *paths)

@@ -1,7 +1,7 @@
 """What a scene costs at the datasets' real sizes (``DATASETS``), on real content upscaled to them: disk of the frame
 and SAM caches (``--only disk``, ``sam``), and peak host memory, seconds per iteration and render speed of short
-ns-train runs on the CPU (``--only train``). Records accumulate in ``<output>/records.json``; every run rewrites
-``real_size_costs.md`` from them (its notes say what each column measures)."""
+ns-train runs on the CPU (``--only train``). Records accumulate in ``<output>/records.json``; every run rewrites the
+tables from them (``benchmarks/results/real_size_costs.md`` says what each column measures)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ import shlex
 import shutil
 import statistics
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +25,7 @@ from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 from PIL import Image
 
-from benchmarks.common import REAL, machine_description, run_measured, timed_train
+from benchmarks.common import REAL, fill_page, machine_description, run_measured, table, timed, timed_train
 
 
 @dataclass(frozen=True)
@@ -217,7 +216,7 @@ def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frame
     timing, usage = timed_train(command, args.output / "runs" / f"{name}-{method}.json", log_path)
     render_path = args.output / "runs" / f"{name}-{method}-render.json"
     run_measured([sys.executable, "-P", "-m", "benchmarks.real_size_costs", str(run_dir / "config.yml"),
-                  str(render_path), str(RENDER_DIVISOR), "1"], log_path.with_suffix(".render.log"))
+                  str(render_path)], log_path.with_suffix(".render.log"))
     render = json.loads(render_path.read_text())
     iterations = timing["iteration_seconds"]
     record = {
@@ -243,161 +242,80 @@ def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frame
     return record
 
 
-def render_child(config_path: Path, result_path: Path, divisor: int, repeats: int) -> None:
-    """Child process: load the run's last checkpoint and time `repeats` full renders of the held-out camera's first
-    frame at 1/divisor of its size."""
+def render_child(config_path: Path, result_path: Path) -> None:
+    """Child process: load the run's last checkpoint and time one full render of the held-out camera's first frame at
+    1 / RENDER_DIVISOR of its size."""
     from nerfstudio.utils.eval_utils import eval_setup
 
     _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
     camera = pipeline.datamanager.eval_dataset.cameras[0:1]
-    camera.rescale_output_resolution(1.0 / divisor)
-    seconds = []
-    for _ in range(repeats):
-        entered = time.perf_counter()
-        with pipeline.model.rendering("num_samples"):
-            outputs = pipeline.model.get_outputs_for_camera(camera)
-        seconds.append(time.perf_counter() - entered)
-    result = {
-        "width": int(camera.width), "height": int(camera.height), "seconds": seconds,
-        "samples_per_ray": float(outputs["num_samples"].float().mean()),
-    }
+    camera.rescale_output_resolution(1.0 / RENDER_DIVISOR)
+    with pipeline.model.rendering("num_samples"):
+        seconds, outputs = timed(lambda: pipeline.model.get_outputs_for_camera(camera), 1)
+    result = {"width": int(camera.width), "height": int(camera.height), "seconds": [seconds],
+              "samples_per_ray": float(outputs["num_samples"].float().mean())}  # fmt: skip
     result_path.write_text(json.dumps(result))
-
-
-class LoadSampler:
-    """The 1-minute load average, sampled every `period` seconds in a background thread."""
-
-    def __init__(self, period: float = 15.0) -> None:
-        self.samples = [os.getloadavg()[0]]
-        threading.Thread(target=self.run, args=(period,), daemon=True).start()  # ends with the process
-
-    def run(self, period: float) -> None:
-        while True:
-            time.sleep(period)
-            self.samples.append(os.getloadavg()[0])
-
-    def summary(self) -> Dict[str, float]:
-        return {"min": min(self.samples), "mean": statistics.fmean(self.samples), "max": max(self.samples)}
-
-
-def mib(value: float) -> str:
-    return f"{value / 2**20:,.1f} MiB"
 
 
 def size(value: float) -> str:
     """Bytes in the largest binary unit that keeps the number at least 1."""
     for unit, power in (("GiB", 30), ("MiB", 20), ("KiB", 10)):
-        if value >= 2**power:
+        if abs(value) >= 2**power:
             return f"{value / 2**power:,.2f} {unit}"
     return f"{value:.0f} B"
 
 
 def disk_table(records: List[Dict[str, Any]]) -> List[str]:
-    rows = [
-        "| dataset (cameras x frames, training size) | content (upscaled) | SAM cache format | frame cache: frames read in place? "
-        "| frame cache / frame **(measured)** | uncompressed RGB / frame (computed) | frame cache / scene (computed) "
-        "| SAM file **(measured)** | SAM cache / scene (computed) | both caches / scene (computed) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
+    rows = []
     for r in records:
         d = DATASETS[r["dataset"]]
         count = d.cameras * d.frames
-        frames = r["frame_cache_bytes_per_frame"] * count
-        sam = r["sam_bytes_per_file"] * count
-        rows.append(
-            f"| {d.name} ({d.cameras} x {d.frames} = {count}, {d.train_size[0]}x{d.train_size[1]}) | {r['content']} "
-            f"| `{r['sam_format']}` | {'yes (empty check markers only)' if r['in_place'] else 'no: PNG copies'} "
-            f"| {size(r['frame_cache_bytes_per_frame'])} | {size(d.train_size[0] * d.train_size[1] * 3)} "
-            f"| {size(frames)} | {size(r['sam_bytes_per_file'])} | {size(sam)} | {size(frames + sam)} |"
-        )
-    return rows
+        frames, sam = r["frame_cache_bytes_per_frame"] * count, r["sam_bytes_per_file"] * count
+        rows.append([
+            f"{d.name} ({d.cameras} x {d.frames} = {count}, {d.train_size[0]}x{d.train_size[1]})", r["content"],
+            f"`{r['sam_format']}`", "yes (empty check markers only)" if r["in_place"] else "no: PNG copies",
+            size(r["frame_cache_bytes_per_frame"]), size(d.train_size[0] * d.train_size[1] * 3), size(frames),
+            size(r["sam_bytes_per_file"]), size(sam), size(frames + sam),
+        ])  # fmt: skip
+    return table(["dataset (cameras x frames, training size)", "content (upscaled)", "SAM cache format",
+                  "frame cache: frames read in place?", "frame cache / frame **(measured)**",
+                  "uncompressed RGB / frame (computed)", "frame cache / scene (computed)", "SAM file **(measured)**",
+                  "SAM cache / scene (computed)", "both caches / scene (computed)"], rows)  # fmt: skip
 
 
 def setup_time_table(records: List[Dict[str, Any]]) -> List[str]:
-    rows = [
-        "| dataset | content | SAM cache format | frame cache s / frame **(measured)** | SAM encode s / image "
-        "**(measured)** | frame cache + SAM encode, whole scene (computed) |",
-        "|---|---|---|---|---|---|",
-    ]
+    rows = []
     for r in records:
         d = DATASETS[r["dataset"]]
         total = (r["frame_cache_seconds_per_frame"] + r["sam_seconds_per_image"]) * d.cameras * d.frames
-        rows.append(
-            f"| {d.name} | {r['content']} | `{r['sam_format']}` | {r['frame_cache_seconds_per_frame']:.2f} "
-            f"| {r['sam_seconds_per_image']:.2f} | {total / 60:.0f} min |"
-        )
-    return rows
+        rows.append([d.name, r["content"], f"`{r['sam_format']}`", f"{r['frame_cache_seconds_per_frame']:.2f}",
+                     f"{r['sam_seconds_per_image']:.2f}", f"{total / 60:.0f} min"])  # fmt: skip
+    return table(["dataset", "content", "SAM cache format", "frame cache s / frame **(measured)**",
+                  "SAM encode s / image **(measured)**", "frame cache + SAM encode, whole scene (computed)"], rows)
 
 
 def train_table(records: List[Dict[str, Any]]) -> List[str]:
-    rows = [
-        "| training size (dataset) | method | frames (images) | peak RSS **(measured)** | RSS peak before the "
-        "training loop **(measured)** | s / iteration, median **(measured)** | first iteration **(measured)** "
-        "| s from ns-train's start (after imports) to the training loop **(measured)** | gear updates run | held-out render: size, s / frame, FPS **(measured)** "
-        "| samples / ray | parameters at these frames **(measured)** | parameters at the real frame count "
-        "**(measured, model built)** | training memory added at the real frame count, at most (computed) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
+    rows = []
     for r in records:
-        d = DATASETS[r["dataset"]]
-        render = r["render"]
+        d, render = DATASETS[r["dataset"]], r["render"]
         seconds = statistics.median(render["seconds"])
-        rows.append(
-            f"| {d.train_size[0]}x{d.train_size[1]} ({d.name}) | {r['method']} | {r['frames']} ({r['images']}) "
-            f"| {mib(r['peak_rss_bytes'])} | {mib(r['rss_when_training_starts_bytes'])} "
-            f"| {r['median_iteration_seconds']:.2f} (of {r['timed_iterations']}) | {r['first_iteration_seconds']:.1f} s "
-            f"| {r['setup_seconds']:.0f} | {r['gear_updates']} | {render['width']}x{render['height']}, {seconds:.1f} s, "
-            f"{1 / seconds:.2f} | {render['samples_per_ray']:.1f} | {mib(r['parameter_bytes'])} "
-            f"| {mib(r['parameter_bytes_at_real_frames'])} ({d.frames} frames) "
-            f"| {mib(4 * (r['parameter_bytes_at_real_frames'] - r['parameter_bytes']))} |"
-        )
-    return rows
-
-
-INTRO = """Every number below comes from one of three kinds, marked in the column headers: **measured** on this machine
-by the plugin's own code (real files written and read, real `ns-train` runs); *computed* from measurements (a
-measured size per frame or per file times the scene's cameras x frames, or parameter bytes times a factor); and, at
-the end, what is *not measured*. The real captures on this machine are small, so the content of every image is real
-(CMU Panoptic basketball, N3D flame_steak frame 0) but upscaled (bicubic) to each dataset's real size."""
-
-DISK_NOTES = """Frame cache: the dataset's files at their distributed size (Technicolor: PNG frames at 2048x1088; N3D
-and Immersive: one H.264 video, written by the project's `write_video`, of frame 0 of every camera of the capture,
-at 2704x2028 / 2560x1920) put through `cache_image_frames` / `cache_video_frames` at the training size; the bytes
-the cache folder takes on disk (`du`, folders included), divided by the frames. Upscaled content has less fine
-detail and noise than a real capture at that size, so real frames likely take more than measured here, at most about
-their uncompressed size (given for comparison). SAM cache: `SamFeatureCache.precompute` with the built-in backend on
-frames at the training size; the file's format is its leading magic bytes. Scene totals count every camera, the
-held-out one included (its frames are cached and encoded too)."""
-
-TRAIN_NOTES = """Each run: the panoptic capture (real, 16 cameras, 15 trained, held-out camera 10) in the Technicolor
-layout, upscaled to the dataset's training size, the first few frames, `ns-train` on the CPU for a few iterations
-(gear updates off, unless the column says they ran: a preset iteration takes about a minute on this loaded machine,
-and an update needs at least 13 iterations). Only the image size is the dataset's: the camera
-count, camera model (Immersive is fisheye) and scene bounds are the capture's. The datamanager holds 40 training
-images (and every evaluation image, at most 8) in memory at a time whatever the video length, so every run here
-already holds the 40 images a 300-frame run holds. Peak RSS: `ru_maxrss` of the training process (`os.wait4`);
-"before the training loop": its peak when `Trainer.train` starts (after reading, caching, SAM encoding and building
-the model); the time to that point includes building the frame and SAM caches unless an earlier run with the same
-scene had built them. Iteration time: `Trainer.train_iteration` (ray batch with SAM targets, forward, backward, optimizer
-step), the median after the first iterations; the first iteration also loads the datamanager's 40 images (again
-every 100 iterations); gear updates run between iterations and are not in it. Render: the held-out camera's first
-frame, from the run's checkpoint, in a second process, at the size given (the first render is timed too); the
-model has trained for only a few iterations, so its gear levels, and so its samples per ray, are not those of a
-trained model. Parameters: the bytes of the preset's model built for the run's frames and for the dataset's real
-frame count (the space-time planes of every gear above 1, and the proposal networks' time axes, grow with the
-frames); the growth of training memory with the frames is *computed* from them: at most 4 x the parameter bytes
-added (parameters, gradients and Adam's two moments; Adam keeps no state for the planes of gears never used)."""
-
-NOT_MEASURED = """- Memory and time of gear updates at these sizes, in runs where none ran (loss maps at 128 pixels, up to 8 frames
-  of a camera loaded for the motion gate, Eq 11 steps on at most 8,192 points per set).
-- Frame-cache sizes on a real capture at full size (only upscaled real content; see above).
-- Peak RSS at the real frame counts (50 / 300 frames): only the growth of the model's parameters with the frames is
-  computed; the runs hold as many images as a long run does.
-- Memory that builds up over a long run: the SAM cache's memory maps (at most 256 files open, their pages counted in
-  RSS once read), planes of upper gears coming into use after updates, evaluation during training (off here).
-- Iteration time of the Immersive fisheye / unbounded setting and N3D's forward-facing rig: the runs use the panoptic
-  dome's cameras at those image sizes.
-- Any of this on a GPU."""
+        rows.append([
+            f"{d.train_size[0]}x{d.train_size[1]} ({d.name})", r["method"], f"{r['frames']} ({r['images']})",
+            size(r["peak_rss_bytes"]), size(r["rss_when_training_starts_bytes"]),
+            f"{r['median_iteration_seconds']:.2f} (of {r['timed_iterations']})",
+            f"{r['first_iteration_seconds']:.1f} s", f"{r['setup_seconds']:.0f}", r["gear_updates"],
+            f"{render['width']}x{render['height']}, {seconds:.1f} s, {1 / seconds:.2f}",
+            f"{render['samples_per_ray']:.1f}",
+            size(r["parameter_bytes"]), f"{size(r['parameter_bytes_at_real_frames'])} ({d.frames} frames)",
+            size(4 * (r["parameter_bytes_at_real_frames"] - r["parameter_bytes"])),
+        ])  # fmt: skip
+    header = ["training size (dataset)", "method", "frames (images)", "peak RSS **(measured)**",
+              "RSS peak before the training loop **(measured)**", "s / iteration, median **(measured)**",
+              "first iteration **(measured)**", "s from ns-train's start (after imports) to the training loop "
+              "**(measured)**", "gear updates run", "held-out render: size, s / frame, FPS **(measured)**",
+              "samples / ray", "parameters at these frames **(measured)**", "parameters at the real frame count "
+              "**(measured, model built)**", "training memory added at the real frame count, at most (computed)"]
+    return table(header, rows) + ["", *frame_growth(records)]
 
 
 def frame_growth(records: List[Dict[str, Any]]) -> List[str]:
@@ -405,35 +323,27 @@ def frame_growth(records: List[Dict[str, Any]]) -> List[str]:
     lines = []
     for name in DATASETS:
         for method in sorted({r["method"] for r in records}):
-            runs = sorted((r for r in records if (r["dataset"], r["method"]) == (name, method)), key=lambda r: r["frames"])
+            runs = [r for r in records if (r["dataset"], r["method"]) == (name, method)]
+            runs.sort(key=lambda r: r["frames"])
             if len(runs) < 2:
                 continue
             low, high = runs[0], runs[-1]
+            parameters = high["parameter_bytes"] - low["parameter_bytes"]
             lines.append(
-                f"- {name} size, {method}: peak RSS {mib(low['peak_rss_bytes'])} at {low['frames']} frames, "
-                f"{mib(high['peak_rss_bytes'])} at {high['frames']} frames (**measured**, difference "
-                f"{(high['peak_rss_bytes'] - low['peak_rss_bytes']) / 2**20:+,.0f} MiB); parameters "
-                f"{(high['parameter_bytes'] - low['parameter_bytes']) / 2**20:+,.1f} MiB, i.e. at most "
-                f"{4 * (high['parameter_bytes'] - low['parameter_bytes']) / 2**20:+,.0f} MiB of training memory "
-                f"(*computed*)."
+                f"- {name} size, {method}: peak RSS {size(low['peak_rss_bytes'])} at {low['frames']} frames, "
+                f"{size(high['peak_rss_bytes'])} at {high['frames']} frames (**measured**, difference "
+                f"{size(high['peak_rss_bytes'] - low['peak_rss_bytes'])}); parameters {size(parameters)}, i.e. at most "
+                f"{size(4 * parameters)} of training memory (*computed*)."
             )
     return lines
 
 
-def report(records: Dict[str, Any]) -> str:
-    lines = ["# Real-size costs (issue 14, item 4)", "", INTRO, "", "Runs, latest first (each replaces the rows it "
-             "measures; disk rows are kept per SAM cache format):", ""]
-    for run in records["invocations"]:
-        lines.append(f"- `{run['command']}` (part: {', '.join(run['parts'])}), {run['date']}; 1-minute load average "
-                     f"during the run min {run['load']['min']:.2f}, mean {run['load']['mean']:.2f}, max "
-                     f"{run['load']['max']:.2f} on 2 CPUs (the machine is shared with other work, so times are "
-                     f"slower than on an idle machine); {run['machine']}")
-    lines += ["", "## Disk", "", DISK_NOTES, "", *disk_table(records["disk"]), "", "## Set-up time (cache building)",
-              "", "Wall-clock seconds on the shared machine (see the load above).", "",
-              *setup_time_table(records["disk"]), "", "## Training memory and speed, rendering", "", TRAIN_NOTES, "",
-              *train_table(records["train"]), "", *frame_growth(records["train"]), "", "## Not measured", "",
-              NOT_MEASURED, ""]
-    return "\n".join(lines)
+def parts(records: Dict[str, Any]) -> Dict[str, str]:
+    """The generated parts of the results page, by their markers' names."""
+    runs = [f"- `{run['command']}` (part: {', '.join(run['parts'])}), {run['date']}; 1-minute load average "
+            f"{run['load']}; {run['machine']}" for run in records["invocations"]]  # fmt: skip
+    return {"runs": "\n".join(runs), "disk": "\n".join(disk_table(records["disk"])),
+            "setup": "\n".join(setup_time_table(records["disk"])), "train": "\n".join(train_table(records["train"]))}
 
 
 @dataclasses.dataclass
@@ -441,9 +351,9 @@ class RealSizeCosts:
     """Measure the caches' disk, and short training runs' memory and speed, at the datasets' real sizes."""
 
     output: Path = Path("outputs/real_size_costs")
-    """Working folder: scenes, caches, runs, records.json, real_size_costs.md."""
+    """Working folder: scenes, caches, runs, records.json, real_size_costs.md (the tables)."""
     results: Optional[Path] = None
-    """Also write real_size_costs.md here."""
+    """Also write the tables into real_size_costs.md here, between its ``<!-- part -->`` markers."""
     only: Optional[Literal["disk", "sam", "train"]] = None
     """One part ('sam': the SAM cache alone, on the frames of an earlier disk run); the other parts' records stay."""
     sam_cache_module: Optional[Path] = None
@@ -457,61 +367,60 @@ class RealSizeCosts:
 
     def main(self) -> None:
         records_path = self.output / "records.json"
-        records = json.loads(records_path.read_text()) if records_path.is_file() else {"invocations": [], "disk": [],
-                                                                                        "train": []}
-        parts = ["disk", "train"] if self.only is None else [self.only]
+        empty = {"invocations": [], "disk": [], "train": []}
+        records = json.loads(records_path.read_text()) if records_path.is_file() else empty
+        parts_run = ["disk", "train"] if self.only is None else [self.only]
         self.output.mkdir(parents=True, exist_ok=True)
-        load = LoadSampler()
-        if "disk" in parts or "sam" in parts:
-            module = feature_cache_module(self.sam_cache_module)
-            content = real_content()
-            measured = []
-            for name in self.datasets:
-                dataset = DATASETS[name]
-                for source, images in content.items():
-                    if "disk" in parts:
-                        frames = measure_frames(dataset, source, images, self.output)
-                    else:
-                        frames = next(r for r in records["disk"] if (r["dataset"], r["content"]) == (name, source))
-                        frames = {k: v for k, v in frames.items() if not k.startswith("sam_")}
-                    folder = content_folder(self.output, dataset, source) / "sam-cache"
-                    sam = measure_sam(training_frames(self.output, dataset, source), folder, module, SAM_IMAGES)
-                    source_module = str(self.sam_cache_module or module.__name__)
-                    measured.append({**frames, **sam, "sam_cache_module": source_module})
-                    print(f"[real_size_costs] disk: {measured[-1]}", flush=True)
-            keys = {(r["dataset"], r["content"], r["sam_format"]) for r in measured}
-            records["disk"] = [r for r in records["disk"] if (r["dataset"], r["content"], r["sam_format"]) not in keys]
-            records["disk"] = sorted(records["disk"] + measured, key=lambda r: (list(DATASETS).index(r["dataset"]),
-                                                                                r["content"], r["sam_format"]))
-        invocation = {"command": shlex.join(["nice", "-n", str(os.nice(0)), ".venv/bin/python", "-m", "benchmarks", *sys.argv[1:]]),
-                      "parts": parts, "machine": machine_description("cpu")}
+        load = os.getloadavg()[0]
+        if "disk" in parts_run or "sam" in parts_run:
+            records["disk"] = self.measure_disk(records["disk"], "disk" in parts_run)
+        command = shlex.join(["nice", "-n", str(os.nice(0)), ".venv/bin/python", "-m", "benchmarks", *sys.argv[1:]])
+        invocation = {"command": command, "parts": parts_run, "machine": machine_description("cpu")}
         records["invocations"].insert(0, invocation)
 
         def save() -> None:
-            """Records and report as they stand (after every run, so that a stopped benchmark keeps what it measured)."""
-            invocation.update(date=datetime.datetime.now().strftime("%Y-%m-%d %H:%M"), load=load.summary())
+            """Records and pages as they stand (after every run, so that a stopped benchmark keeps what it measured)."""
+            date = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
+            invocation.update(date=date, load=f"{load:.2f} at the start, {os.getloadavg()[0]:.2f} at the end")
             records_path.write_text(json.dumps(records, indent=1))
-            for folder in (self.output, *([self.results] if self.results else [])):
-                (folder / "real_size_costs.md").write_text(report(records))
+            generated = parts(records)
+            (self.output / "real_size_costs.md").write_text("\n\n".join(f"## {n}\n\n{t}" for n, t in generated.items()))
+            if self.results is not None:
+                fill_page(self.results / "real_size_costs.md", generated)
 
         save()
-        if "train" in parts:
-            runs = [
-                (name, method, frames)
-                for method in self.methods
-                for name in self.datasets
-                for frames in (self.frame_counts if name == "N3D" and method == self.methods[0]
-                               else self.frame_counts[:1])
-            ]
-            for name, method, frames in runs:
-                record = train_and_render(self, DATASETS[name], method, frames)
-                records["train"] = [r for r in records["train"] if (r["dataset"], r["method"], r["frames"]) != (name, method, frames)]
-                records["train"] = sorted(records["train"] + [record], key=lambda r: (
-                    r["method"], list(DATASETS).index(r["dataset"]), r["frames"]))
-                save()
-        save()
-        print(report(records))
+        first = (self.methods[0], "N3D")  # trains at every frame count, the others at the first
+        runs = [(name, method, frames) for method in self.methods for name in self.datasets
+                for frames in (self.frame_counts if (method, name) == first else self.frame_counts[:1])]  # fmt: skip
+        for name, method, frames in runs if "train" in parts_run else []:
+            record = train_and_render(self, DATASETS[name], method, frames)
+            kept = [r for r in records["train"] if (r["dataset"], r["method"], r["frames"]) != (name, method, frames)]
+            records["train"] = sorted(kept + [record], key=lambda r: (r["method"], list(DATASETS).index(r["dataset"]),
+                                                                      r["frames"]))  # fmt: skip
+            save()
+        print((self.output / "real_size_costs.md").read_text())
+
+    def measure_disk(self, old: List[Dict[str, Any]], frames_too: bool) -> List[Dict[str, Any]]:
+        """The frame caches (when ``frames_too``, else an earlier run's records) and the SAM caches of every dataset
+        and content; ``old``'s records of other datasets, contents and SAM formats kept."""
+        module = feature_cache_module(self.sam_cache_module)
+        measured = []
+        for name in self.datasets:
+            dataset = DATASETS[name]
+            for source, images in real_content().items():
+                if frames_too:
+                    frames = measure_frames(dataset, source, images, self.output)
+                else:
+                    frames = next(r for r in old if (r["dataset"], r["content"]) == (name, source))
+                    frames = {k: v for k, v in frames.items() if not k.startswith("sam_")}
+                folder = content_folder(self.output, dataset, source) / "sam-cache"
+                sam = measure_sam(training_frames(self.output, dataset, source), folder, module, SAM_IMAGES)
+                measured.append({**frames, **sam, "sam_cache_module": str(self.sam_cache_module or module.__name__)})
+                print(f"[real_size_costs] disk: {measured[-1]}", flush=True)
+        keys = {(r["dataset"], r["content"], r["sam_format"]) for r in measured}
+        measured += [r for r in old if (r["dataset"], r["content"], r["sam_format"]) not in keys]
+        return sorted(measured, key=lambda r: (list(DATASETS).index(r["dataset"]), r["content"], r["sam_format"]))
 
 
 if __name__ == "__main__":  # the render child of ``train_and_render``
-    render_child(Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]))
+    render_child(Path(sys.argv[1]), Path(sys.argv[2]))

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -17,12 +16,13 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import torch
 import tyro
+from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.models.base_model import Model
 from nerfstudio.utils.eval_utils import eval_setup
 from PIL import Image
 from torch import Tensor
 
-from benchmarks.common import timed, write_report
+from benchmarks.common import command_line, machine_description, table, timed, write_report
 from gear_nerfstudio.model.metrics import psnr
 
 
@@ -33,16 +33,24 @@ def save_strip(path: Path, truth: Tensor, generic: Tensor, rendered: Tensor) -> 
     Image.fromarray((strip.cpu().numpy() * 255).round().astype(np.uint8)).save(path)
 
 
+def held_out(config: Path, frames: int) -> Tuple[Model, List[Tuple[RayBundle, Tensor]]]:
+    """A run's model, and ``frames`` held-out frames evenly spaced over the video: (ray bundle, image) each."""
+    _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
+    views = []
+    for index in np.linspace(0, len(dataset) - 1, frames).round().astype(int).tolist():
+        camera = dataset.cameras[index : index + 1].to(model.device)
+        truth = dataset.get_image_float32(index)[..., :3].to(model.device)
+        views.append((camera.generate_rays(camera_indices=0, keep_shape=True), truth))
+    return model, views
+
+
 def render_rows(config: Path, frames: int, repeats: int, images: Optional[Path]) -> Dict[str, float]:
     """Render measurements of one run, averaged over its held-out frames; the first frame's images saved as
     ``images/<run>.png`` when ``images`` is given."""
-    _, pipeline, _, _ = eval_setup(config, test_mode="test")
-    model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
+    model, views = held_out(config, frames)
     rows: Dict[str, List[float]] = {}
-    for index in np.linspace(0, len(dataset) - 1, frames).round().astype(int):
-        camera = dataset.cameras[int(index) : int(index) + 1].to(model.device)
-        rays = camera.generate_rays(camera_indices=0, keep_shape=True)
-        truth = dataset.get_image_float32(int(index))[..., :3].to(model.device)
+    for rays, truth in views:
         with torch.no_grad():
             generic_s, generic = timed(lambda: Model.get_outputs_for_camera_ray_bundle(model, rays), repeats)
             # code from before the model's own render path (issue 25) has no `rendering`: both columns are then generic
@@ -73,37 +81,26 @@ def set_render_counts(model_config, counts: str) -> None:
     model_config.render.num_proposal_samples = tuple(proposal) or None
 
 
-def sample_rows(config: Path, frames: int, repeats: int, variants: List[str]) -> List[str]:
+def sample_rows(config: Path, frames: int, repeats: int, variants: List[str]) -> List[List[str]]:
     """Table rows of the model's render path at other render sample counts (``render.num_proposal_samples`` and
     ``render.num_samples``, given as "64,32,24": the proposal iterations' counts, then n) against the run's own:
     seconds per frame, pixels per second, PSNR against the held-out frames and against the render at the run's
     counts, averaged over the held-out frames."""
-    _, pipeline, _, _ = eval_setup(config, test_mode="test")
-    model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
-    indices = np.linspace(0, len(dataset) - 1, frames).round().astype(int)
-    cameras = [dataset.cameras[int(i) : int(i) + 1].to(model.device) for i in indices]
-    bundles = [camera.generate_rays(camera_indices=0, keep_shape=True) for camera in cameras]
-    truths = [dataset.get_image_float32(int(i))[..., :3].to(model.device) for i in indices]
+    model, views = held_out(config, frames)
     own = ",".join(str(n) for n in (*model.config.proposal.num_samples, model.config.num_samples))
-    model.get_outputs_for_camera_ray_bundle(bundles[0])  # warm-up: the first render of a process is slower
+    model.get_outputs_for_camera_ray_bundle(views[0][0])  # warm-up: the first render of a process is slower
     references, rows = None, []
     for variant in [own, *variants]:
         set_render_counts(model.config, variant)
-        seconds, psnrs, renders = [], [], []
-        for rays, truth in zip(bundles, truths):
-            time_s, rendered = timed(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], repeats)
-            seconds.append(time_s)
-            psnrs.append(float(psnr(rendered, truth)))
-            renders.append(rendered)
-        references = references or renders
-        differences = [float(psnr(rendered, reference)) for rendered, reference in zip(renders, references)]
-        pixels = bundles[0].shape.numel()
-        label = f"{variant} (the run's)" if variant == own else variant
-        rows.append(
-            f"| {config.parent} | {label} | "
-            f"{np.mean(seconds):.2f} | {pixels / np.mean(seconds):,.0f} | {np.mean(psnrs):.3f} | "
-            f"{np.mean(differences):.1f} |"
-        )
+        renders = [timed(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], repeats) for rays, _ in views]
+        seconds = np.mean([time_s for time_s, _ in renders])
+        references = references or [rendered for _, rendered in renders]
+        rows.append([
+            config.parent, f"{variant} (the run's)" if variant == own else variant, f"{seconds:.2f}",
+            f"{views[0][0].shape.numel() / seconds:,.0f}",
+            f"{np.mean([float(psnr(rendered, truth)) for (_, rendered), (_, truth) in zip(renders, views)]):.3f}",
+            f"{np.mean([float(psnr(r, ref)) for (_, r), ref in zip(renders, references)]):.1f}",
+        ])  # fmt: skip
         print(rows[-1], flush=True)
     return rows
 
@@ -151,34 +148,26 @@ class RenderSpeed:
     """Instead: the render at these sample counts ("P1,P2,N": the proposal iterations' counts, then n)."""
 
     def main(self) -> None:
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+        lines = [f"Command: `{command_line()}`", "", f"Machine: {machine_description(device)}.", ""]
         if self.samples is not None:
-            header = ("| run | render samples: proposal iterations, n | render s / frame | pixels / s | PSNR (dB) | "
-                      "PSNR against the run's own counts (dB) |")
-            lines = [machine_line(), "", header, "|" + " --- |" * (header.count("|") - 1)]
-            for config in self.configs:
-                lines += sample_rows(config, self.frames, self.repeats, list(self.samples))
-            return write_report(self.output, "\n".join(lines) + "\n\n", append=True)
-        header = ("| run | pixels | render s / frame: generic -> model (speed-up) | pixels / s (model) | samples / ray | "
-                  "PSNR generic / model (dB) | model vs generic: max abs diff, PSNR (dB) | training rays / s |")
-        lines = [machine_line(), "", header, "|" + " --- |" * (header.count("|") - 1)]
+            rows = [row for c in self.configs for row in sample_rows(c, self.frames, self.repeats, list(self.samples))]
+            header = ["run", "render samples: proposal iterations, n", "render s / frame", "pixels / s", "PSNR (dB)",
+                      "PSNR against the run's own counts (dB)"]  # fmt: skip
+            return write_report("\n".join(lines + table(header, rows)) + "\n\n", self.output, append=True)
+        rows = []
         for config in self.configs:
             row = render_rows(config, self.frames, self.repeats, self.images)
-            rate = training_rate(config, self.train_windows)
-            lines.append(
-                f"| {config.parent} | {row['pixels']:.0f} | "
-                f"{row['generic_s']:.2f} -> {row['model_s']:.2f} ({row['generic_s'] / row['model_s']:.2f}x) | "
-                f"{row['pixels'] / row['model_s']:,.0f} | {row['samples_per_ray']:.1f} | "
-                f"{row['generic_psnr']:.3f} / {row['model_psnr']:.3f} | "
-                f"{row['max_difference']:.2g}, {row['difference_psnr']:.1f} | {rate:,.0f} |"
-            )
-            print(lines[-1], flush=True)
-        write_report(self.output, "\n".join(lines) + "\n\n", append=True)
-
-
-def machine_line() -> str:
-    """The machine, torch and device, for the tables."""
-    device = f"cuda {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "cpu"
-    return (
-        f"Machine: {platform.machine()} {platform.processor() or ''}, {torch.get_num_threads()} torch threads, "
-        f"torch {torch.__version__}, device {device}."
-    )
+            rows.append([
+                config.parent, f"{row['pixels']:.0f}",
+                f"{row['generic_s']:.2f} -> {row['model_s']:.2f} ({row['generic_s'] / row['model_s']:.2f}x)",
+                f"{row['pixels'] / row['model_s']:,.0f}", f"{row['samples_per_ray']:.1f}",
+                f"{row['generic_psnr']:.3f} / {row['model_psnr']:.3f}",
+                f"{row['max_difference']:.2g}, {row['difference_psnr']:.1f}",
+                f"{training_rate(config, self.train_windows):,.0f}",
+            ])  # fmt: skip
+            print(rows[-1], flush=True)
+        header = ["run", "pixels", "render s / frame: generic -> model (speed-up)", "pixels / s (model)",
+                  "samples / ray", "PSNR generic / model (dB)", "model vs generic: max abs diff, PSNR (dB)",
+                  "training rays / s"]  # fmt: skip
+        write_report("\n".join(lines + table(header, rows)) + "\n\n", self.output, append=True)

@@ -1,5 +1,5 @@
-"""Speed / accuracy: Gear-NeRF against plain K-Planes and one-change variants (``METHODS``), on synthetic and real
-scenes (``SCENES``), with seeds; held-out PSNR / SSIM / LPIPS, moving-region PSNR and gear shares
+"""Speed / accuracy: Gear-NeRF against plain K-Planes and one-change variants (``METHODS``), on real captures
+(``SCENES``), with seeds; held-out PSNR / SSIM / LPIPS, moving-region PSNR and gear shares
 (``gear_nerfstudio.model.moving_region``, as ns-eval), render FPS, samples per ray, parameters and peak RSS at every
 checkpoint; scored at equal iterations and at equal training time (CPU seconds of a single-threaded training process
 on the CPU, wall-clock on CUDA). Writes ``<output>/speed_accuracy.md``, ``.png`` and ``records.json``
@@ -15,14 +15,13 @@ import os
 import re
 import shlex
 import shutil
-import sys
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 import tyro
 
-from benchmarks.common import REAL, contact_sheet, machine_description, timed, timed_train
+from benchmarks.common import REAL, contact_sheet, page, table, timed, timed_train, write_report
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 
 Clock = Literal["seconds", "cpu_seconds"]
@@ -77,93 +76,47 @@ def method_overrides(method: str, frames: int, iterations: int) -> List[str]:
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """A benchmark scene: how ns-train reads it and which held-out pixels move."""
+    """A real capture as ns-train reads it, and its held-out camera."""
 
     name: str
     description: str
     frames: int
     held_out: str
-    synthetic: Optional[Dict[str, Any]] = None
-    """SyntheticSpec fields of a generated scene (written under <output>/scenes/<name>); None: real."""
-    data: Optional[Path] = None
-    """A real capture, read by ``parser``."""
-    parser: str = "technicolor-data"
-    """The dataparser of a real capture (synthetic scenes are written in the Neural 3D Video layout)."""
+    data: Path
+    parser: str = "neural-3d-video-data"
     parser_options: Tuple[str, ...] = ()
 
-    def folder(self, output: Path) -> Path:
-        return output / "scenes" / self.name if self.synthetic else self.data
-
-    def write(self, output: Path) -> None:
-        """Generate a synthetic scene (kept when one of the same spec is there)."""
-        if not self.synthetic:
-            return
-        from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
-
-        spec = SyntheticSpec(dataset="n3d", **self.synthetic)
-        scene = self.folder(output)
-        info = scene / "ground_truth" / "scene.json"
-        if info.is_file() and json.loads(info.read_text())["spec"] == json.loads(json.dumps(spec.__dict__)):
-            return
-        for stale in (scene, output / "cache" / self.name):
-            shutil.rmtree(stale, ignore_errors=True)
-        write_synthetic_scene(scene, spec)
-
     def dataparser(self, output: Path) -> List[str]:
-        parser = "neural-3d-video-data" if self.synthetic else self.parser
         return [
-            parser, "--data", str(self.folder(output)), "--held-out-camera", self.held_out,
+            self.parser, "--data", str(self.data), "--held-out-camera", self.held_out,
             "--cache-dir", str(output / "cache" / self.name), *self.parser_options,
-        ]
+        ]  # fmt: skip
 
 
+VIDEO, VIDEO_MASKS = REAL / "panoptic_basketball_video", str(REAL / "panoptic_basketball_video_masks")
+LAYOUT = "real: CMU Panoptic basketball in the Neural 3D Video layout"
 SCENES: Dict[str, Scene] = {
-    "mixed": Scene(
-        "mixed", "synthetic, 64x48, 6 cameras, 6 frames: textured static room, a static, a slow and a fast sphere",
-        6, "cam00", synthetic=dict(width=64, height=48, frames=6, cameras=6, motion="mixed"),
-    ),
-    "mixed-large": Scene(
-        "mixed-large", "synthetic, 160x120, 12 cameras, 24 frames: the same content", 24, "cam00",
-        synthetic=dict(width=160, height=120, frames=24, cameras=12, motion="mixed"),
-    ),
-    "static": Scene(
-        "static", "synthetic, 64x48, 6 cameras, 6 frames, nothing moves", 6, "cam00",
-        synthetic=dict(width=64, height=48, frames=6, cameras=6, motion="static"),
-    ),
-    "panoptic": Scene(
-        "panoptic", "real: CMU Panoptic basketball, 320x180, 16 cameras (15 trained), 20 frames", 20, "06",
-        data=REAL / "panoptic_basketball",
-        parser_options=("--near", "0.3", "--far", "7", "--moving-masks", str(REAL / "panoptic_basketball_masks")),
-    ),
-    "panoptic-video": Scene(
-        "panoptic-video", "real: CMU Panoptic basketball in the Neural 3D Video layout, 304x168 (downscale 2), 31 cameras "
-        "(30 trained), frames 0-29", 30, "cam00", data=REAL / "panoptic_basketball_video", parser="neural-3d-video-data",
-        parser_options=("--downscale-factor", "2", "--frame-count", "30"),
-    ),
-    "panoptic-video-60": Scene(
-        "panoptic-video-60", "real: CMU Panoptic basketball in the Neural 3D Video layout, 304x168 (downscale 2), 31 "
-        "cameras (30 trained), frames 60-89 (no default was chosen on them), held-out cam20 with person masks", 30,
-        "cam20", data=REAL / "panoptic_basketball_video", parser="neural-3d-video-data",
-        parser_options=("--downscale-factor", "2", "--frame-start", "60", "--frame-count", "30",
-                        "--moving-masks", str(REAL / "panoptic_basketball_video_masks")),
-    ),
-    "panoptic-video-full": Scene(
-        "panoptic-video-full", "real: CMU Panoptic basketball in the Neural 3D Video layout at full size, 608x336, 31 "
-        "cameras (30 trained), all 90 frames (for the GPU)", 90, "cam00", data=REAL / "panoptic_basketball_video",
-        parser="neural-3d-video-data",
-    ),
-    "panoptic-video-full-30": Scene(
-        "panoptic-video-full-30", "real: CMU Panoptic basketball in the Neural 3D Video layout at full size, 608x336, "
-        "31 cameras (30 trained), frames 0-29, held-out cam20 with person masks (for the GPU)", 30, "cam20",
-        data=REAL / "panoptic_basketball_video", parser="neural-3d-video-data",
-        parser_options=("--frame-count", "30", "--moving-masks", str(REAL / "panoptic_basketball_video_masks")),
-    ),
-    "flame-steak": Scene(
-        "flame-steak", "real: Neural 3D Video flame_steak, frame 0 only, 336x252 (downscale 2), 21 forward-facing "
-        "cameras (20 trained)", 1, "cam00", data=REAL / "n3d_flame_steak_frame0", parser="neural-3d-video-data",
-        parser_options=("--downscale-factor", "2"),
-    ),
-}
+    scene.name: scene
+    for scene in (
+        Scene("panoptic", "real: CMU Panoptic basketball, 320x180, 16 cameras (15 trained), 20 frames", 20, "06",
+              REAL / "panoptic_basketball", "technicolor-data",
+              ("--near", "0.3", "--far", "7", "--moving-masks", str(REAL / "panoptic_basketball_masks"))),
+        Scene("panoptic-video", f"{LAYOUT}, 304x168 (downscale 2), 31 cameras (30 trained), frames 0-29", 30, "cam00",
+              VIDEO, parser_options=("--downscale-factor", "2", "--frame-count", "30")),
+        Scene("panoptic-video-60", f"{LAYOUT}, 304x168 (downscale 2), 31 cameras (30 trained), frames 60-89 (no "
+              "default was chosen on them), held-out cam20 with person masks", 30, "cam20", VIDEO,
+              parser_options=("--downscale-factor", "2", "--frame-start", "60", "--frame-count", "30",
+                              "--moving-masks", VIDEO_MASKS)),
+        Scene("panoptic-video-full", f"{LAYOUT} at full size, 608x336, 31 cameras (30 trained), all 90 frames (for "
+              "the GPU)", 90, "cam00", VIDEO),
+        Scene("panoptic-video-full-30", f"{LAYOUT} at full size, 608x336, 31 cameras (30 trained), frames 0-29, "
+              "held-out cam20 with person masks (for the GPU)", 30, "cam20", VIDEO,
+              parser_options=("--frame-count", "30", "--moving-masks", VIDEO_MASKS)),
+        Scene("flame-steak", "real: Neural 3D Video flame_steak, frame 0 only, 336x252 (downscale 2), 21 "
+              "forward-facing cameras (20 trained)", 1, "cam00", REAL / "n3d_flame_steak_frame0",
+              parser_options=("--downscale-factor", "2")),
+    )
+}  # fmt: skip
 """Scenes by name. ``panoptic`` holds out camera 06 (not the usual 10) because 10 has no masks; ``panoptic-video``
 holds out cam00, the parser's default and the view published methods hold out, which has none (its moving region
 is the held-out view's colour change); ``panoptic-video-60`` is the window of the same capture that no default was
@@ -175,10 +128,10 @@ class SpeedAccuracy:
     """Train and evaluate Gear-NeRF, plain K-Planes and variants (``METHODS``) on ``SCENES``; tables and a plot."""
 
     output: Path = Path("outputs/speed_accuracy")
-    """Working folder: scenes, runs, logs, records.json, speed_accuracy.md / .png."""
+    """Working folder: runs, logs, records.json, speed_accuracy.md / .png."""
     results: Optional[Path] = None
     """Also copy speed_accuracy.md and speed_accuracy.png here (e.g. benchmarks/results)."""
-    scenes: Tuple[str, ...] = ("mixed", "mixed-large", "panoptic")
+    scenes: Tuple[str, ...] = ("panoptic-video", "panoptic")
     """Scenes to run (``SCENES``)."""
     main_methods: Tuple[str, ...] = ("gear-nerf", "kplanes")
     """Methods run with every seed; the equal-time budget is the shortest of their mean training times."""
@@ -209,37 +162,26 @@ class SpeedAccuracy:
             for method in (*self.main_methods, *self.ablations):
                 method_overrides(method, SCENES[name].frames, self.preset_iterations())  # fail early on an unknown name
         self.output.mkdir(parents=True, exist_ok=True)
-        started = datetime.datetime.now(datetime.timezone.utc)
-        load_before = os.getloadavg()
+        started, load = datetime.datetime.now(datetime.timezone.utc), os.getloadavg()[0]
         records: List[Dict[str, Any]] = []
         for name in self.scenes:
-            scene = SCENES[name]
-            if not self.report_only:
-                scene.write(self.output)
             for method in (*self.main_methods, *self.ablations):
                 seeds = self.seeds if method in self.main_methods else 1
                 for seed in range(self.first_seed, self.first_seed + seeds):
-                    records.append(self.run(scene, method, seed))
+                    records.append(self.run(SCENES[name], method, seed))
                     (self.output / "records.json").write_text(json.dumps(records, indent=1))
-        finished = datetime.datetime.now(datetime.timezone.utc)
-        context = {
-            "command": "python -m benchmarks " + shlex.join(sys.argv[1:]),
-            "started": started.isoformat(timespec="seconds"),
-            "finished": finished.isoformat(timespec="seconds"),
-            "machine": machine_description(self.device),
-            "load": f"1-minute load average {load_before[0]:.2f} at the start, {os.getloadavg()[0]:.2f} at the end",
-        }
+        finished = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+        how = f"{started.isoformat(timespec='seconds')} to {finished} (UTC); 1-minute load average {load:.2f} at the "
         report = Report(self, records)
         pictures = report.pictures(self.output)
-        markdown = report.markdown(context, pictures)
-        (self.output / "speed_accuracy.md").write_text(markdown)
         report.plot(self.output / "speed_accuracy.png")
-        print(markdown)
+        lines = report.markdown(how + f"{os.getloadavg()[0]:.2f} at the end", pictures)
+        text = page("Speed / accuracy benchmark", lines, self.device)
+        write_report(text, self.output / "speed_accuracy.md")
         if self.results is not None:
             self.results.mkdir(parents=True, exist_ok=True)
             for path in (self.output / "speed_accuracy.md", self.output / "speed_accuracy.png", *pictures):
                 shutil.copyfile(path, self.results / path.name)
-            print(f"[speed_accuracy] wrote speed_accuracy.md, speed_accuracy.png and the pictures to {self.results}")
 
     @property
     def base_preset(self) -> str:
@@ -288,8 +230,6 @@ class SpeedAccuracy:
         run_dir.mkdir(parents=True)
         print(f"[speed_accuracy] {scene.name} / {method} / {seed}: ns-train {shlex.join(command)}", flush=True)
         timing, usage = timed_train(command, run_dir / "benchmark_timing.json", run_dir / "train.log", True)
-        print(f"[speed_accuracy] {scene.name} / {method} / {seed}: trained in {timing['train_seconds']:.1f} s; "
-              "evaluating", flush=True)
         record = {
             "command": command,
             "scene": scene.name,
@@ -311,13 +251,25 @@ class SpeedAccuracy:
         return record
 
 
+CLOCKS: Dict[Clock, str] = {"cpu_seconds": "training CPU time (s)", "seconds": "training time (s)"}
+QUALITY = ("PSNR", "PSNR moving", "PSNR rest", "SSIM", "LPIPS")
+
+
+def quality(points: List[Dict[str, Any]]) -> List[str]:
+    """The ``QUALITY`` cells of checkpoints."""
+    return [cell(points, key, digits) for key, digits in
+            (("psnr", 2), ("psnr_moving", 2), ("psnr_static", 2), ("ssim", 3), ("lpips", 3))]  # fmt: skip
+
+
 class Report:
-    """Tables, targets and plot of a set of run records."""
+    """Tables, plot and pictures of a set of run records."""
 
     def __init__(self, benchmark: SpeedAccuracy, records: List[Dict[str, Any]]) -> None:
         self.benchmark = benchmark
         self.records = records
         self.scenes = list(dict.fromkeys(r["scene"] for r in records))
+        self.clock: Clock = "cpu_seconds" if benchmark.device == "cpu" else "seconds"
+        """The headline clock: CPU time of the training process on the CPU, wall-clock time on CUDA."""
 
     def runs(self, scene: str, method: str) -> List[Dict[str, Any]]:
         return [r for r in self.records if r["scene"] == scene and r["method"] == method]
@@ -325,218 +277,100 @@ class Report:
     def methods(self, scene: str) -> List[str]:
         return list(dict.fromkeys(r["method"] for r in self.records if r["scene"] == scene))
 
-    @property
-    def headline_clock(self) -> Clock:
-        """CPU time of the training process on the CPU, wall-clock time on CUDA."""
-        return "cpu_seconds" if self.benchmark.device == "cpu" else "seconds"
-
-    def iterations(self, scene: str) -> List[int]:
+    def iterations(self, scene: str) -> str:
         """The iteration counts of a scene's runs."""
-        return sorted({r["iterations"] for m in self.methods(scene) for r in self.runs(scene, m)})
+        return ", ".join(map(str, sorted({r["iterations"] for r in self.records if r["scene"] == scene})))
 
-    def budget(self, scene: str, clock: Optional[Clock] = None) -> float:
-        """Equal-time budget of a scene on a clock (default the headline's): ``--time-budget``, or the shortest
-        mean training time of the main methods."""
-        total = "train_" + (clock or self.headline_clock)
-        means = [np.mean([r[total] for r in self.runs(scene, m)]) for m in self.benchmark.main_methods]
+    def budget(self, scene: str, clock: Clock) -> float:
+        """Equal-time budget of a scene on a clock: the shortest mean training time of the main methods."""
+        means = [np.mean([r["train_" + clock] for r in self.runs(scene, m)]) for m in self.benchmark.main_methods]
         return float(min(m for m in means if not np.isnan(m)))
 
-    def at_budget(self, scene: str, method: str, clock: Optional[Clock] = None) -> List[Optional[Dict[str, Any]]]:
-        clock = clock or self.headline_clock
-        return [at_budget(r, self.budget(scene, clock), clock) for r in self.runs(scene, method)]
+    def at_budget(self, scene: str, method: str, clock: Clock) -> List[Optional[Dict[str, Any]]]:
+        """Each run's last checkpoint within the scene's budget on the clock (1 ms tolerance), None for none."""
+        budget = self.budget(scene, clock)
+        return [next((p for p in reversed(r["checkpoints"]) if p[clock] <= budget + 1e-3), None)
+                for r in self.runs(scene, method)]  # fmt: skip
 
-    def equal_time_table(self, clock: Clock) -> List[str]:
-        """Each run at its last checkpoint within the scene's budget on this clock."""
+    def markdown(self, how: str, pictures: List[Path]) -> List[str]:
+        b = self.benchmark
         lines = [
-            "| scene | budget (s) | method | n | iteration reached | PSNR | PSNR moving | PSNR rest | SSIM | LPIPS |",
-            "|---|---|---|---|---|---|---|---|---|---|",
-        ]
+            f"Base preset `{b.base_preset}` with its own defaults, device {b.device}; held-out metrics on "
+            f"{b.eval_frames} frames of the held-out camera; mean ± sample standard deviation over the n seeds; "
+            f"{how}.",
+            "",
+            *(f"- `{s}`: {SCENES[s].description}; held-out camera {SCENES[s].held_out}; {self.iterations(s)} "
+              "iterations per run." for s in self.scenes),
+            "",
+            "![PSNR against training time](speed_accuracy.png)",
+        ]  # fmt: skip
+        for clock in ("cpu_seconds", "seconds") if self.clock == "cpu_seconds" else ("seconds",):
+            lines += ["", f"## Equal {CLOCKS[clock]}: the main methods' shortest mean", "", *self.equal_time(clock)]
+        gains = [self.gain(scene) for scene in self.scenes if {"gear-nerf", "kplanes"} <= set(self.methods(scene))]
+        lines += ["", "## Equal iterations", "", *self.equal_iterations(),
+                  "", f"## Gear-NeRF minus plain K-Planes, equal {CLOCKS[self.clock]}, paired by seed", "", *gains,
+                  "", "## What each gear update did (at its review)", "", *self.reviews_table(),
+                  "", "## Pictures", "", *(f"![{path.stem}]({path.name})" for path in pictures)]  # fmt: skip
+        return lines
+
+    def equal_time(self, clock: Clock) -> List[str]:
+        """Each run at its last checkpoint within the scene's budget on this clock."""
+        rows = []
         for scene in self.scenes:
-            budget = self.budget(scene, clock)
             for method in self.methods(scene):
                 points = self.at_budget(scene, method, clock)
-                if any(p is None for p in points):
-                    lines.append(f"| {scene} | {budget:.0f} | {METHODS[method][0]} | {len(points)} | "
-                                 "a run has no checkpoint within the budget | | | | | |")
-                    continue
-                lines.append(
-                    f"| {scene} | {budget:.0f} | {METHODS[method][0]} | {len(points)} | "
-                    f"{spread([p['step'] + 1 for p in points], 0)} | {spread([p['psnr'] for p in points])} | "
-                    f"{scores(points, 'psnr_moving')} | {scores(points, 'psnr_static')} | "
-                    f"{spread([p['ssim'] for p in points], 3)} | {lpips_of(points)} |"
-                )
-        return lines
+                cells = ["a run has no checkpoint within the budget"] if None in points else [
+                    spread([p["step"] + 1 for p in points], 0), *quality(points)]  # fmt: skip
+                rows.append([scene, f"{self.budget(scene, clock):.0f}", METHODS[method][0], len(points), *cells])
+        return table(["scene", "budget (s)", "method", "n", "iteration reached", *QUALITY], rows)
 
-    def finals(self, scene: str, method: str) -> List[Dict[str, Any]]:
-        return [r["checkpoints"][-1] for r in self.runs(scene, method)]
-
-    def markdown(self, context: Dict[str, str], pictures: List[Path]) -> str:
-        b = self.benchmark
-        lpips_note = "" if has_lpips() else " LPIPS: missing (AlexNet weights not on disk; nothing downloaded)."
-        lines = [
-            "# Speed / accuracy benchmark",
-            "",
-            f"Base preset `{b.base_preset}` with its own defaults (gear-update schedule included, scaled to the "
-            f"iterations of each scene), device {b.device}. Held-out metrics on {b.eval_frames} frames of the held-out "
-            f"camera, evenly spaced over the video.{lpips_note} Mean ± sample standard deviation over seeds; `n` is "
-            f"the number of seeds ({b.seeds} for {', '.join(METHODS[m][0] for m in b.main_methods)}"
-            + (", 1 for the ablations)." if b.ablations else ")."),
-            "",
-            "Scenes:",
-            "",
-        ]
-        for name in self.scenes:
-            iterations = self.iterations(name)
-            lines.append(
-                f"- `{name}`: {SCENES[name].description}; held-out camera {SCENES[name].held_out}; "
-                f"{', '.join(map(str, iterations))} iterations per run."
-            )
-        budget_rule = (
-            "Each run at its last checkpoint within the scene's budget (the shortest mean total training time of "
-            + ", ".join(METHODS[m][0] for m in b.main_methods) + ")"
-        )
-        lines += ["", "![PSNR against training time](speed_accuracy.png)", ""]
-        if self.headline_clock == "cpu_seconds":
-            lines += ["## Equal training CPU time (headline)", "", budget_rule + ", in CPU seconds of the "
-                      "single-threaded training process.", "", *self.equal_time_table("cpu_seconds"), ""]
-            lines += ["## Equal wall-clock time", "", budget_rule + ", in wall-clock seconds (these depend on what "
-                      "else the machine ran at the same time; see the load below).", ""]
-        else:
-            lines += ["## Equal wall-clock time (headline)", "", budget_rule + ".", ""]
-        lines += self.equal_time_table("seconds")
-        lines += [
-            "",
-            "## Equal iterations",
-            "",
-            "| scene | method | n | training time (s) | ms / iteration | PSNR | PSNR moving | PSNR rest | SSIM | LPIPS "
-            "| accumulation | near layer | gear updates "
-            "| moving px at gear >= 2 | static px at gear 1 | samples / ray | render FPS | parameters (in use) "
-            "| peak RSS (MiB) | training CPU time (s) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-        ]
+    def equal_iterations(self) -> List[str]:
+        """Each run at its last checkpoint."""
+        rows = []
         for scene in self.scenes:
             for method in self.methods(scene):
-                runs, finals = self.runs(scene, method), self.finals(scene, method)
-                lines.append(
-                    f"| {scene} | {METHODS[method][0]} | {len(runs)} | {spread([r['train_seconds'] for r in runs], 0)} | "
-                    f"{spread([1000 * r['train_seconds'] / r['iterations'] for r in runs], 0)} | "
-                    f"{spread([p['psnr'] for p in finals])} | {scores(finals, 'psnr_moving')} | "
-                    f"{scores(finals, 'psnr_static')} | {spread([p['ssim'] for p in finals], 3)} | "
-                    f"{lpips_of(finals)} | {spread([p['accumulation'] for p in finals], 3)} | "
-                    f"{share(finals, 'near_layer')} | {spread([p['gear_updates'] for p in finals], 0)} | "
-                    f"{share(finals, 'moving_at_gear_2')} | {share(finals, 'static_at_gear_1')} | "
-                    f"{spread([p['samples_per_ray'] for p in finals], 1)} | {spread([p['fps'] for p in finals])} | "
-                    f"{finals[0]['parameters']:,} ({finals[0]['parameters_in_use']:,}) | "
-                    f"{spread([r['peak_rss_mib'] for r in runs], 0)} | "
-                    f"{spread([r['train_cpu_seconds'] for r in runs], 0)} |"
-                )
-        lines += [
-            "",
-            "Accumulation: the mean opacity of the held-out renders (1: every ray ends in the model's volume, nothing "
-            "comes from the background term). Near layer: the share of held-out pixels whose depth is below a quarter "
-            "of the training rays' median depth (`GearNeRFModel.near_layer`).",
-            "",
-            "## What each gear update did",
-            "",
-            "Measured by the guard at each update's review, L epochs after it (`GearUpdater.review`): the PSNR of "
-            "the update's own training views, and of the held-out camera at the same times (at the loss maps' size), "
-            "at the review minus just before the update (mean ± spread over seeds); an update is undone when its views "
-            "end more than `guard-tolerance` worse.",
-            "",
-            *self.reviews_table(),
-        ]
-        lines += ["", "## Pictures", "", "The held-out view at two of the scored times, first seed, last checkpoint.", ""]
-        lines += [f"![{path.stem}]({path.name})" for path in pictures]
-        lines += ["", "## Targets", ""] + self.targets() + [
-            "",
-            "## How it was run",
-            "",
-            "```bash",
-            f".venv/bin/{context['command']}",
-            "```",
-            "",
-            f"- date: {context['started']} to {context['finished']} (UTC)",
-            f"- machine: {context['machine']}",
-            f"- {context['load']}",
-            "- training time: wall-clock seconds inside nerfstudio's training loop up to each checkpoint, without "
-            "writing checkpoints and with in-loop evaluation off; training CPU time: the same in CPU seconds of the "
-            "training process; render FPS: held-out frames per second of `get_outputs_for_camera`; gear maps: "
-            "`visible_gear_levels` on the scored frames; peak RSS: `ru_maxrss` of the training process.",
-            "",
-        ]
-        return "\n".join(lines)
+                runs = self.runs(scene, method)
+                finals = [r["checkpoints"][-1] for r in runs]
+                rows.append([
+                    scene, METHODS[method][0], len(runs), cell(runs, "train_seconds", 0),
+                    cell(runs, "train_cpu_seconds", 0),
+                    spread([1000 * r["train_seconds"] / r["iterations"] for r in runs], 0),
+                    *quality(finals), before_first_update(runs), cell(finals, "accumulation", 3),
+                    cell(finals, "near_layer", 0, 100, " %"), cell(finals, "gear_updates", 0),
+                    cell(finals, "moving_at_gear_2", 0, 100, " %"), cell(finals, "static_at_gear_1", 0, 100, " %"),
+                    cell(finals, "samples_per_ray", 1), cell(finals, "fps"),
+                    f"{finals[0]['parameters']:,} ({finals[0]['parameters_in_use']:,})", cell(runs, "peak_rss_mib", 0),
+                ])  # fmt: skip
+        header = ["scene", "method", "n", CLOCKS["seconds"], CLOCKS["cpu_seconds"], "ms / iteration", *QUALITY,
+                  "PSNR just before the first gear update", "accumulation", "near layer", "gear updates",
+                  "moving px at gear >= 2", "static px at gear 1", "samples / ray", "render FPS", "parameters (in use)",
+                  "peak RSS (MiB)"]  # fmt: skip
+        return table(header, rows)
 
-    def targets(self) -> List[str]:
-        """The issues' targets, with the measured numbers (met or not)."""
-        lines = []
-        clock = "CPU" if self.headline_clock == "cpu_seconds" else "wall-clock"
-        for scene in self.scenes:
-            gear, kplanes = self.at_budget(scene, "gear-nerf"), self.at_budget(scene, "kplanes")
-            finals = self.finals(scene, "gear-nerf")
-            if not gear or not kplanes or any(p is None for p in (*gear, *kplanes)):
-                lines.append(f"- {scene}: not evaluated (needs gear-nerf and kplanes runs within the budget).")
-                continue
-            gains = [g["psnr"] - k["psnr"] for g, k in zip(gear, kplanes)]  # paired by seed
-            gain, gain_spread = float(np.mean(gains)), float(np.std(gains, ddof=1)) if len(gains) > 1 else 0.0
-            required = {"panoptic": 0.0, "panoptic-video": 0.5}.get(scene, 0.5)
-            margin = gain - gain_spread if scene == "panoptic-video" else gain
-            rule = "mean minus spread" if scene == "panoptic-video" else "mean"
-            updates = min(p["gear_updates"] for p in finals)
-            parts = [
-                f"Gear-NeRF {gain:+.2f} ± {gain_spread:.2f} dB against plain K-Planes with L_SAM at equal {clock} time, "
-                f"paired by seed (target: {rule} >= {required:+.1f}: {'met' if margin >= required else 'not met'})",
-                f"at least {updates} gear updates per run (target >= 2: {'met' if updates >= 2 else 'not met'})",
-            ]
-            if scene == "panoptic-video":
-                psnr, accumulation = np.mean([p["psnr"] for p in finals]), np.mean([p["accumulation"] for p in finals])
-                parts += [
-                    f"Gear-NeRF at its defaults {psnr:.2f} dB held-out PSNR (target >= 25: {'met' if psnr >= 25 else 'not met'})",
-                    f"held-out accumulation {accumulation:.3f} (target > 0.95: {'met' if accumulation > 0.95 else 'not met'})",
-                ]
-            moving = [p["moving_at_gear_2"] for p in finals if p["moving_at_gear_2"] is not None]
-            static = [p["static_at_gear_1"] for p in finals if p["static_at_gear_1"] is not None]
-            if moving:
-                moving_target = 0.5 if scene == "panoptic" else 0.8
-                parts.append(
-                    f"{100 * np.mean(moving):.0f} % of moving pixels at gear >= 2 (target >= {100 * moving_target:.0f} %: "
-                    f"{'met' if np.mean(moving) >= moving_target else 'not met'})"
-                )
-            if static:
-                parts.append(
-                    f"{100 * np.mean(static):.0f} % of static pixels at gear 1 (target >= 90 %: "
-                    f"{'met' if np.mean(static) >= 0.9 else 'not met'})"
-                )
-            lines.append(f"- {scene}: " + "; ".join(parts) + ".")
-        below = [
-            f"{r['scene']} / {METHODS[r['method']][0]} / seed {r['seed']}" for r in self.records if ends_below_first_update(r)
-        ]
-        checked = sum(r.get("before_first_update") is not None for r in self.records)
-        lines.append(
-            f"- Every run ends at or above its own held-out PSNR just before its first gear update ({checked} runs with "
-            f"updates): {'met' if not below else 'not met: ' + ', '.join(below)}."
-        )
-        return lines
+    def gain(self, scene: str) -> str:
+        """Gear-NeRF's held-out PSNR minus plain K-Planes' at the scene's headline budget, paired by seed."""
+        gear, kplanes = self.at_budget(scene, "gear-nerf", self.clock), self.at_budget(scene, "kplanes", self.clock)
+        if None in gear + kplanes:
+            return f"- {scene}: a run has no checkpoint within the budget."
+        return f"- {scene}: {spread([g['psnr'] - k['psnr'] for g, k in zip(gear, kplanes)], signed=True)} dB"
 
     def reviews_table(self) -> List[str]:
-        """What each gear update did, as the guard measured it at its review (L epochs later): the change of its
-        training views' PSNR and of the held-out view's at the same times, and how many were undone."""
-        lines = [
-            "| scene | method | n | update | reviewed at step | its views (dB) | held-out view (dB) | undone |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
+        """What each gear update did, as the guard measured it at its review (``GearUpdater.review``, L epochs
+        later): the change of its training views' PSNR and of the held-out view's at the same times; undone ones."""
+        rows = []
         for scene in self.scenes:
             for method in self.methods(scene):
-                runs = [r for r in self.runs(scene, method) if r.get("update_reviews")]
-                for update in sorted({v["update"] for r in runs for v in r["update_reviews"]}):
-                    reviews = [v for r in runs for v in r["update_reviews"] if v["update"] == update]
-                    views = [v["views_after"] - v["views_before"] for v in reviews]
-                    held = [v["held_out_after"] - v["held_out_before"] for v in reviews if v["held_out_after"] is not None]
-                    lines.append(
-                        f"| {scene} | {METHODS[method][0]} | {len(reviews)} | {update} | "
-                        f"{spread([v['step'] for v in reviews], 0)} | {spread(views, 2, signed=True)} | "
-                        f"{spread(held, 2, signed=True) if held else 'n/a'} | {sum(not v['kept'] for v in reviews)} |"
-                    )
-        return lines
+                reviews = [v for r in self.runs(scene, method) for v in r.get("update_reviews", [])]
+                for update in sorted({v["update"] for v in reviews}):
+                    done = [v for v in reviews if v["update"] == update]
+                    held = [v["held_out_after"] - v["held_out_before"] for v in done if v["held_out_after"] is not None]
+                    rows.append([
+                        scene, METHODS[method][0], len(done), update, spread([v["step"] for v in done], 0),
+                        spread([v["views_after"] - v["views_before"] for v in done], 2, True),
+                        spread(held, 2, True) if held else "n/a", sum(not v["kept"] for v in done),
+                    ])  # fmt: skip
+        header = ["scene", "method", "n", "update", "reviewed at step", "its views (dB)", "held-out view (dB)"]
+        return table([*header, "undone"], rows)
 
     def pictures(self, folder: Path) -> List[Path]:
         """Per scene, the held-out view at two times (rows): ground truth, Gear-NeRF, plain K-Planes and Gear-NeRF's
@@ -548,8 +382,9 @@ class Report:
                 continue
             gear, kplanes = (self.benchmark.run_dir(scene, m, min(r["seed"] for r in rs)) for m, rs in runs.items())
             path = folder / f"speed_accuracy_{scene}.png"
-            views_sheet([("ground truth", gear, "truth"), ("Gear-NeRF", gear, "render"),
-                         ("plain K-Planes (one gear)", kplanes, "render"), ("Gear-NeRF gear map", gear, "gear")]).save(path)
+            columns = [("ground truth", gear, "truth"), ("Gear-NeRF", gear, "render")]
+            columns += [("plain K-Planes (one gear)", kplanes, "render"), ("Gear-NeRF gear map", gear, "gear")]
+            views_sheet(columns).save(path)
             written.append(path)
         return written
 
@@ -567,24 +402,23 @@ class Report:
         for axis, scene in zip(axes.flat, self.scenes):
             for method in self.methods(scene):
                 runs = self.runs(scene, method)
-                seconds = np.mean([[p[self.headline_clock] for p in r["checkpoints"]] for r in runs], axis=0)
+                seconds = np.mean([[p[self.clock] for p in r["checkpoints"]] for r in runs], axis=0)
                 psnrs = np.array([[p["psnr"] for p in r["checkpoints"]] for r in runs])
                 line = axis.plot(seconds, psnrs.mean(axis=0), marker="o", markersize=3,
                                  label=f"{METHODS[method][0]} (n={len(runs)})")[0]
                 if len(runs) > 1:
                     axis.fill_between(seconds, psnrs.min(axis=0), psnrs.max(axis=0), color=line.get_color(), alpha=0.15)
-            axis.axvline(self.budget(scene), color="grey", linestyle="--", linewidth=0.8)
-            iterations = self.iterations(scene)
-            axis.set_title(f"{scene} ({', '.join(map(str, iterations))} iterations)")
-            axis.set_xlabel("training CPU time (s)" if self.headline_clock == "cpu_seconds" else "training time (s)")
+            axis.axvline(self.budget(scene, self.clock), color="grey", linestyle="--", linewidth=0.8)
+            axis.set_title(f"{scene} ({self.iterations(scene)} iterations)")
+            axis.set_xlabel(CLOCKS[self.clock])
             axis.set_ylabel("held-out PSNR (dB)")
             axis.grid(alpha=0.3)
             axis.legend(fontsize=6)
         for axis in list(axes.flat)[len(self.scenes):]:
             axis.set_visible(False)
         b = self.benchmark
-        figure.suptitle(f"Held-out PSNR vs training time ({b.base_preset}, {b.device})\nmean over seeds, band: min-max; "
-                        "dashed: equal-time budget", fontsize=9)  # two lines: one scene's figure is narrow
+        figure.suptitle(f"Held-out PSNR vs training time ({b.base_preset}, {b.device})\nmean over seeds, band: "
+                        "min-max; dashed: equal-time budget", fontsize=9)  # two lines: one scene's figure is narrow
         figure.tight_layout()
         figure.savefig(path, dpi=120)
         plt.close(figure)
@@ -598,42 +432,17 @@ def spread(values: List[float], digits: int = 2, signed: bool = False) -> str:
     return f"{np.mean(values):{sign}.{digits}f} ± {np.std(values, ddof=1):.{digits}f}"
 
 
-def ends_below_first_update(record: Dict[str, Any]) -> bool:
-    """Whether a run's last checkpoint scores a lower held-out PSNR than its checkpoint just before its first gear
-    update (False for a run without updates)."""
-    step = record.get("before_first_update")
-    if step is None:
-        return False
-    before = next(p for p in record["checkpoints"] if p["step"] == step)
-    return record["checkpoints"][-1]["psnr"] < before["psnr"]
-
-
-def scores(points: List[Dict[str, Any]], key: str) -> str:
-    """Mean ± spread of a score over runs, "missing" where a run could not compute it."""
+def cell(points: List[Dict[str, Any]], key: str, digits: int = 2, scale: float = 1.0, unit: str = "") -> str:
+    """``spread`` of a value of runs or checkpoints, times ``scale``; "missing" where one lacks it."""
     values = [p.get(key) for p in points]
-    return "missing" if None in values else spread(values)
+    return "missing" if None in values else spread([scale * v for v in values], digits) + unit
 
 
-def share(points: List[Dict[str, Any]], key: str) -> str:
-    values = [p[key] for p in points if p[key] is not None]
-    return "n/a" if not values else spread([100 * v for v in values], 0) + " %"
-
-
-def lpips_of(points: List[Dict[str, Any]]) -> str:
-    values = [p["lpips"] for p in points if p.get("lpips") is not None]
-    return "missing" if len(values) < len(points) else spread(values, 3)
-
-
-def at_budget(run: Dict[str, Any], budget: float, clock: Clock) -> Optional[Dict[str, Any]]:
-    """The last checkpoint of a run whose training time on the clock is within the budget (1 ms tolerance)."""
-    within = [p for p in run["checkpoints"] if p[clock] <= budget + 1e-3]
-    return within[-1] if within else None
-
-
-def has_lpips() -> bool:
-    from gear_nerfstudio.model.metrics import lpips_weights_path
-
-    return lpips_weights_path().is_file()
+def before_first_update(runs: List[Dict[str, Any]]) -> str:
+    """``spread`` of the held-out PSNR at each run's checkpoint just before its first gear update."""
+    steps = [(r["checkpoints"], r.get("before_first_update")) for r in runs]
+    values = [next(p["psnr"] for p in points if p["step"] == step) for points, step in steps if step is not None]
+    return spread(values) if values else "n/a"
 
 
 def evaluate_checkpoints(
@@ -685,39 +494,27 @@ def evaluate_checkpoints(
             render_seconds += seconds
             image_metrics, _ = model.get_image_metrics_and_images(outputs, dataset[index])
             for name in metrics:
-                if name in image_metrics:
-                    metrics[name].append(float(image_metrics[name]))
+                metrics[name] += [float(image_metrics[name])] if name in image_metrics else []
             for name in SUMS:
                 sums[name] += image_metrics[name]
             samples += float(outputs["num_samples"].sum())
             pixels += outputs["num_samples"].numel()
             if last and index in (frames[0], frames[len(frames) // 2]):
-                for name, image in (
-                    ("truth", dataset[index]["image"][..., :3]), ("render", outputs["rgb"]), ("gear", outputs["gear"]),
-                ):  # fmt: skip
+                truth = dataset[index]["image"][..., :3]
+                for name, image in (("truth", truth), ("render", outputs["rgb"]), ("gear", outputs["gear"])):
                     pixels_uint8 = (image.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
                     Image.fromarray(pixels_uint8).save(pictures / f"held_out_{index:04d}_{name}.png")
-        scores = region_scores(sums, MIN_MSE)
         total = sum(p.numel() for p in model.parameters())
         unused = sum(p.numel() for p in model.field.parameters()) - model.field.parameters_in_use()
-        results.append(
-            {
-                "step": int(entry["step"]),
-                "seconds": float(entry["seconds"]),
-                "cpu_seconds": float(entry["cpu_seconds"]),
-                "psnr": float(np.mean(metrics["psnr"])),
-                "ssim": float(np.mean(metrics["ssim"])),
-                "lpips": float(np.mean(metrics["lpips"])) if metrics["lpips"] else None,
-                "accumulation": float(np.mean(metrics["accumulation"])),
-                "near_layer": float(np.mean(metrics["near_layer"])),
-                "fps": len(frames) / render_seconds,
-                "samples_per_ray": samples / pixels,
-                **{name: scores.get(name) for name in ("psnr_moving", "psnr_static", "moving_at_gear_2", "static_at_gear_1")},
-                "gear_updates": int(pipeline.gear_update_state.num_updates),
-                "parameters": int(total),
-                "parameters_in_use": int(total - unused),
-            }
-        )
+        results.append({
+            "step": int(entry["step"]), "seconds": float(entry["seconds"]), "cpu_seconds": float(entry["cpu_seconds"]),
+            **{name: float(np.mean(values)) if values else None for name, values in metrics.items()},
+            "fps": len(frames) / render_seconds, "samples_per_ray": samples / pixels,
+            **dict.fromkeys(("psnr_moving", "psnr_static", "moving_at_gear_2", "static_at_gear_1")),
+            **region_scores(sums, MIN_MSE),
+            "gear_updates": int(pipeline.gear_update_state.num_updates),
+            "parameters": int(total), "parameters_in_use": int(total - unused),
+        })  # fmt: skip
         print(f"[speed_accuracy]   step {entry['step']:>6}  {entry['seconds']:8.1f} s  PSNR {results[-1]['psnr']:.2f}"
               f"  samples/ray {results[-1]['samples_per_ray']:.1f}  updates {results[-1]['gear_updates']}", flush=True)
     del pipeline, model

@@ -15,7 +15,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 from scipy import ndimage
 
-from benchmarks.common import mean, ns, pct, write_report
+from benchmarks.common import mean, ns, page, pct, table, write_report
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import Embedding
@@ -60,55 +60,41 @@ class Tracking:
             self.frames = len(np.load(scene / "ground_truth" / "cam00.npz")["object_ids"])
         else:
             scene = self.output / "scene"
-            spec = SyntheticSpec(
-                dataset="n3d", width=self.width, height=self.height, frames=self.frames, cameras=self.cameras,
-                motion=self.motion,
-            )
-            write_synthetic_scene(scene, spec)
+            write_synthetic_scene(scene, SyntheticSpec(dataset="n3d", width=self.width, height=self.height,
+                                                       frames=self.frames, cameras=self.cameras, motion=self.motion))
             config = self.train(scene)
         trained = time.time()
         click_time = self.click_frame / (self.frames - 1)
-        lines = [
-            f"Run: `{config}`; click in {self.click_camera} at time {click_time:.2f} (frame {self.click_frame}), "
-            "one positive click at the ground-truth pixel deepest inside the object; target: held-out cam00 at "
-            f"every frame time ({self.frames}).",
-            "",
-            "| object | propagation | masks from | mIoU | Acc. | t-mIoU | t-Acc. |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        details = []
+        rows, details = [], []
         held_out = self.held_out_embeddings(scene)
         for object_id in self.objects:
             x, y = self.click_pixel(scene, object_id)
             for propagation in PROPAGATIONS:
-                result_dir = self.output / f"track_{object_id}_{propagation}"
-                summary = track_click(
-                    config, result_dir, self.click_camera, click_time, (x, y), "cam00", propagation,
-                    min_views=self.min_views,
-                )
+                summary = track_click(config, self.output / f"track_{object_id}_{propagation}", self.click_camera,
+                                      click_time, (x, y), "cam00", propagation, min_views=self.min_views)
                 metrics = summary["metrics"]
-                reference = self.reference(held_out, summary, object_id, click_time, propagation)
                 name = f"{OBJECT_NAMES.get(object_id, object_id)} ({object_id})"
-                lines.append(
-                    f"| {name} | {propagation} | Gear-NeRF rendered SAM features (ns-gear-track) "
-                    f"| {pct(metrics['mIoU'])} | {pct(metrics['accuracy'])} | {pct(metrics['t-mIoU'])} "
-                    f"| {pct(metrics['t-accuracy'])} |"
-                )
-                lines.append(f"| {name} | {propagation} | same click on the encoder features of cam00's real frames "
-                             f"| {reference} |")
+                rows.append([name, propagation, "Gear-NeRF rendered SAM features (ns-gear-track)",
+                             *(pct(metrics[k]) for k in ("mIoU", "accuracy", "t-mIoU", "t-accuracy"))])
+                rows.append([name, propagation, "same click on the encoder features of cam00's real frames",
+                             self.reference(held_out, summary, object_id, click_time, propagation)])
                 clicked = next(r for r in summary["masks"] if r["time"] == click_time)["prompt"]["points"]
                 details += per_time_table(
                     f"{name}, {propagation}: click pixel ({x}, {y}) of {self.click_camera}, projected to cam00 pixel "
                     f"{clicked}",
                     summary["masks"], {r["time"]: (r.get("iou"), r.get("accuracy")) for r in summary["masks"]}, 2,
                 )  # fmt: skip
-        tracked = time.time()
-        tracking_report(
-            self.output / "tracking.md", lines, details,
-            f"Training {trained - started:.0f} s (0 when --config is given), tracking "
-            f"({len(self.objects) * len(PROPAGATIONS)} ns-gear-track runs, each: model load, masks, overlay "
-            f"video) {tracked - trained:.0f} s, wall clock.",
-        )  # fmt: skip
+        lines = [
+            f"Run: `{config}`; click in {self.click_camera} at time {click_time:.2f} (frame {self.click_frame}), "
+            "one positive click at the ground-truth pixel deepest inside the object; target: held-out cam00 at "
+            f"every frame time ({self.frames}).",
+            "", *table(["object", "propagation", "masks from", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
+        ]  # fmt: skip
+        timing = (f"Training {trained - started:.0f} s (0 when --config is given), tracking ({len(self.objects) * 2} "
+                  f"ns-gear-track runs, each: model load, masks, overlay video) {time.time() - trained:.0f} s, wall "
+                  "clock.")
+        write_report(page("Tracking on a synthetic scene", [*lines, "", "Per time:", *details, "", timing]),
+                     self.output / "tracking.md")  # fmt: skip
 
     def train(self, scene: Path) -> Path:
         data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache")]
@@ -189,11 +175,6 @@ def summary_cells(scores: Dict[float, Tuple[float, float]], click_time: float) -
     return " | ".join(pct(mean(values, index)) for values in (at_click, other) for index in (0, 1))
 
 
-def tracking_report(path: Path, table: List[str], per_time: List[str], timing: str) -> None:
-    """Print and write the summary table, the per-time tables and the timing line."""
-    write_report(path, "\n".join(table + ["", "Per time:"] + per_time) + f"\n\n{timing}\n")
-
-
 def track_click(
     config: Path, folder: Path, camera: str, click_time: float, pixel: Tuple[float, float], target: str,
     propagation: str, video: bool = True, log: Optional[Path] = None, min_views: Optional[int] = None,
@@ -214,19 +195,11 @@ def per_time_table(
     title: str, records: List[Dict], scores: Dict[float, Tuple[Optional[float], Optional[float]]], time_digits: int
 ) -> List[str]:
     """A titled table of the tracked masks (tracking.json's "masks"): time, IoU and accuracy from `scores`
-    (by time), and the prompt."""
-    rows = [f"\n{title}:", "", "| time | IoU | Acc. | prompt |", "|---|---|---|---|"]
+    (by time), and the prompt: the click, or the box from another time (+ region points)."""
+    rows = []
     for record in records:
-        value = scores[record["time"]]
-        rows.append(
-            f"| {record['time']:.{time_digits}f} | {pct(value[0])} | {pct(value[1])} | {describe(record['prompt'])} |"
-        )
-    return rows
-
-
-def describe(prompt: Dict) -> str:
-    if "from_time" not in prompt:
-        return "click"
-    point = "" if "points" not in prompt else " + region points"
-    return f"box from t={prompt['from_time']:.2f}{point}"
-
+        prompt, (value_iou, value_accuracy) = record["prompt"], scores[record["time"]]
+        source = "click" if "from_time" not in prompt else f"box from t={prompt['from_time']:.2f}"
+        source += " + region points" if "from_time" in prompt and "points" in prompt else ""
+        rows.append([f"{record['time']:.{time_digits}f}", pct(value_iou), pct(value_accuracy), source])
+    return ["", f"{title}:", "", *table(["time", "IoU", "Acc.", "prompt"], rows)]

@@ -18,9 +18,9 @@ import numpy as np
 from PIL import Image
 from scipy import ndimage
 
-from benchmarks.common import REAL, mean, pct, read_mask
+from benchmarks.common import REAL, mean, page, pct, read_mask, table, write_report
 from benchmarks.tracking import (PROPAGATIONS, deepest_pixel, mask_scores, per_time_table, summary_cells, track_click,
-                                 tracking_report, train_preset)
+                                 train_preset)
 from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
 from gear_nerfstudio.sam.interface import cells_per_pixel
 from gear_nerfstudio.tracking.metrics import accuracy, iou
@@ -125,7 +125,7 @@ class TrackingReal:
         frames = len(list((masks / self.held_out).glob("*.png")))
         frames = frames if self.frame_count is None else min(frames, self.frame_count)
         capture = Capture(self.capture)
-        lines = [self.segmenter_on_frames(capture, masks, frames), ""]
+        lines = [*self.segmenter_on_frames(capture, masks, frames), ""]
         segmented = time.time()
         config = self.config or self.train(capture)
         trained = time.time()
@@ -135,18 +135,10 @@ class TrackingReal:
             [shrink(person, self.downscale) for person in people(masks, self.held_out, frame)]
             for frame in range(frames)
         ]
-        lines += [
-            f"Run: `{config}`; click in camera {self.click_camera} at time {click_time:.3f} (frame "
-            f"{self.click_frame}), one positive click per person at the mask pixel deepest inside them; target: "
-            f"held-out camera {self.held_out} at every frame time ({frames}).",
-            "",
-            "| person | propagation | mIoU | Acc. | t-mIoU | t-Acc. |",
-            "|---|---|---|---|---|---|",
-        ]
         overlay_frames = capture.frames(
             self.held_out, sorted({round(k) for k in np.linspace(0, frames - 1, OVERLAY_FRAMES)})
         )
-        details, refusals = [], []
+        rows, details, refusals = [], [], []
         for index, person in enumerate(clicked_people):
             x, y = (value / self.downscale for value in deepest_pixel(person))
             for propagation in PROPAGATIONS:
@@ -159,24 +151,28 @@ class TrackingReal:
                     )
                 except subprocess.CalledProcessError:
                     # A refused click is a failed track: no mask at any time.
-                    lines.append(f"| {index} (click {x:.1f}, {y:.1f}) | {propagation} | 0.0 | n/a | 0.0 | n/a |")
+                    rows.append([f"{index} (click {x:.1f}, {y:.1f})", propagation, "0.0 | n/a | 0.0 | n/a"])
                     refusals.append(f"- person {index}, {propagation}: IoU 0 at every time, `ns-gear-track` refused "
                                     f"the click: {refusal(log)}")  # fmt: skip
                     continue
                 scores, truth = score(folder, summary, held_out, click_time)
                 write_overlay(self.output / f"overlay_person{index}_{propagation}.png", overlay_frames, folder, summary,
                               truth)  # fmt: skip
-                lines.append(f"| {index} (click {x:.1f}, {y:.1f}) | {propagation} | {summary_cells(scores, click_time)} |")
+                rows.append([f"{index} (click {x:.1f}, {y:.1f})", propagation, summary_cells(scores, click_time)])
                 details += per_time_table(f"person {index}, {propagation}", summary["masks"], scores, 3)
-        tracked = time.time()
-        tracking_report(
-            self.output / "tracking_real.md", lines + ([""] if refusals else []) + refusals, details,
+        lines += [
+            f"Run: `{config}`; click in camera {self.click_camera} at time {click_time:.3f} (frame "
+            f"{self.click_frame}), one positive click per person at the mask pixel deepest inside them; target: "
+            f"held-out camera {self.held_out} at every frame time ({frames}).",
+            "", *table(["person", "propagation", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
+            *([""] if refusals else []), *refusals, "", "Per time:", *details, "",
             f"Segmenter on frames {segmented - started:.0f} s, training {trained - segmented:.0f} s (0 when "
             f"--config is given), tracking ({len(clicked_people) * len(PROPAGATIONS)} ns-gear-track runs) "
-            f"{tracked - trained:.0f} s, wall clock.",
-        )  # fmt: skip
+            f"{time.time() - trained:.0f} s, wall clock.",
+        ]  # fmt: skip
+        write_report(page("Tracking on a real capture", lines), self.output / "tracking_real.md")
 
-    def segmenter_on_frames(self, capture: Capture, masks: Path, frames: int) -> str:
+    def segmenter_on_frames(self, capture: Capture, masks: Path, frames: int) -> List[str]:
         """mIoU / accuracy of one click per person on the backend's encoding of masked frames (SEGMENTER_FRAMES per
         camera), the best of the candidate masks, and the grid's ceiling."""
         backend = BuiltinSamBackend()
@@ -195,28 +191,21 @@ class TrackingReal:
                          iou(ceiling, person))
                     )  # fmt: skip
         everything = [value for values in results.values() for value in values]
-        rows = [
-            f"SAM backend `{backend.name}` on the real frames ({len(results)} masked cameras x {len(chosen)} frames, "
-            f"{len(everything)} person clicks):",
-            "",
-            "| cameras | clicks | mIoU | Acc. | median IoU | IoU >= 0.5 | best of the masks | grid ceiling |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
+        rows = []
         for name, values in [*results.items(), ("all", everything)]:
             ious = np.array([v[0] for v in values])
-            rows.append(
-                f"| {name} | {len(values)} | {pct(mean(values, 0))} | {pct(mean(values, 1))} | "
-                f"{pct(float(np.median(ious)))} | {100 * float(np.mean(ious >= 0.5)):.0f} % | "
-                f"{pct(mean(values, 2))} | {pct(mean(values, 3))} |"
-            )
-        rows += [
-            "",
+            rows.append([name, len(values), pct(mean(values, 0)), pct(mean(values, 1)), pct(float(np.median(ious))),
+                         f"{100 * float(np.mean(ious >= 0.5)):.0f} %", pct(mean(values, 2)), pct(mean(values, 3))])
+        header = ["cameras", "clicks", "mIoU", "Acc.", "median IoU", "IoU >= 0.5", "best of the masks", "grid ceiling"]
+        return [
+            f"SAM backend `{backend.name}` on the real frames ({len(results)} masked cameras x {len(chosen)} frames, "
+            f"{len(everything)} person clicks):",
+            "", *table(header, rows), "",
             "mIoU is of the decoder's first mask; *best of the masks* takes the best of all the candidate masks it "
             "returns (as if a perfect score picked among them); *grid ceiling* is the person's own mask "
             f"reduced to the {grid} x {grid} cells and decoded back the way the decoder upsamples: about the "
             "best a mask on this grid can do.",
-        ]
-        return "\n".join(rows)
+        ]  # fmt: skip
 
     def train(self, capture: Capture) -> Path:
         options = [

@@ -23,7 +23,7 @@ def test_subcommand_help(name: str, capsys: pytest.CaptureFixture) -> None:
 
 
 def test_speed_accuracy_options() -> None:
-    command = tyro.cli(subcommands(), args=["speed-accuracy", "--scenes", "mixed", "--main-methods", "kplanes",
+    command = tyro.cli(subcommands(), args=["speed-accuracy", "--scenes", "panoptic", "--main-methods", "kplanes",
                                             "--ablations", "--seeds", "1"])  # fmt: skip
     assert command.main_methods == ("kplanes",) and command.ablations == () and command.seeds == 1
 
