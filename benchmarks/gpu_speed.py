@@ -133,6 +133,22 @@ class Run:
             times = [self.timed(lambda: image.update(self.model.get_outputs_for_camera(camera))) for _ in range(count)]
             return times, image["rgb"]
 
+    def profile(self, iterations: int) -> Dict[str, float]:
+        """Per training iteration, over ``iterations`` profiled ones: GPU busy ms (the kernels' own time), host ms
+        in operators (the profiler's overhead included) and kernel launches."""
+        activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+        with torch.profiler.profile(activities=activities) as profiler:
+            for _ in range(iterations):
+                self.iteration()
+            self.synchronize()
+        events = profiler.key_averages()
+        kernels = [event for event in events if event.device_type == torch.autograd.DeviceType.CUDA]
+        return {
+            "busy_ms": sum(event.self_device_time_total for event in kernels) / 1000 / iterations,
+            "host_ms": sum(event.self_cpu_time_total for event in events) / 1000 / iterations,
+            "launches": sum(event.count for event in events if "LaunchKernel" in event.key) / iterations,
+        }
+
 
 def variants(run: Run, args: "GpuSpeed", reference: Tensor) -> List[Dict[str, Any]]:
     """The variants on ``run``'s trained model, each restored afterwards: the renders first (PSNR against
@@ -163,6 +179,8 @@ def variants(run: Run, args: "GpuSpeed", reference: Tensor) -> List[Dict[str, An
         rows.append({"variant": f"training, {rays} rays / batch", "rays": rays,
                      "windows": run.windows(args.windows // 2, args.window)})  # fmt: skip
     sampler.num_rays_per_batch = default_rays
+    if args.profile and run.cuda:
+        rows.append({"variant": f"training, {args.profile} iterations profiled", **run.profile(args.profile)})
     return rows
 
 
@@ -218,8 +236,13 @@ def markdown(results: List[Dict[str, Any]], args: "GpuSpeed") -> str:
                      f"{render_ms:.0f} ({1000 / render_ms:.2f})", gib(r["render_memory"]), f"{r['parameters']:,}"])
         for v in r["variants"]:
             ms = 1000 * statistics.median(v.get("renders", [0]))
-            cells = [f"{ms:.0f}", f"{1000 / ms:.2f}", f"{v['psnr']:.1f}", gib(v["memory"])] if "renders" in v else [
-                *iteration_ms(v["windows"], v["rays"]), "", ""]  # fmt: skip
+            if "busy_ms" in v:
+                busy = f"GPU busy {v['busy_ms']:.1f}, host {v['host_ms']:.1f}"
+                cells = [busy, f"{v['launches']:.0f} launches", "", ""]
+            elif "renders" in v:
+                cells = [f"{ms:.0f}", f"{1000 / ms:.2f}", f"{v['psnr']:.1f}", gib(v["memory"])]
+            else:
+                cells = [*iteration_ms(v["windows"], v["rays"]), "", ""]
             variant_rows.append([r["method"], v["variant"], *cells])
         if r["updates"]:
             lines += ["", f"Gear updates of {r['method']} (seconds each; gear shares of the views' visible surface):"]
@@ -280,6 +303,8 @@ class GpuSpeed:
     """Also render at these sample counts, "P1,P2,N" each."""
     samples_chunk: Optional[int] = None
     """Chunk size of the --render-samples renders."""
+    profile: int = 0
+    """Also profile this many training iterations (CUDA): GPU busy ms, host ms and kernel launches per iteration."""
     output: Path = Path("outputs/gpu_speed")
     results: Optional[Path] = None
     """Also write gpu_speed.md here."""

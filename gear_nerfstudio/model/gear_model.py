@@ -117,6 +117,40 @@ class GearNeRFModelConfig(ModelConfig):
     render: FullImageRenders = field(default_factory=FullImageRenders)
     """Full-image renders (viewer, ns-render, ns-eval, the gear updates' views, tracking)."""
 
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        """Loads a run's config.yml, also one written before the groups above, whose options were flat
+        (``FLAT_OPTIONS``)."""
+        for group, options in FLAT_OPTIONS.items():
+            if group not in state:
+                state[group] = GROUPS[group](**{new: state.pop(old) for old, new in options.items() if old in state})
+        self.__dict__.update(state)
+
+
+GROUPS = {"proposal": ProposalConfig, "losses": LossWeights, "render": FullImageRenders}
+"""The model config's groups of options."""
+FLAT_OPTIONS: Dict[str, Dict[str, str]] = {
+    "proposal": {
+        "num_proposal_samples": "num_samples", "proposal_resolutions": "resolutions",
+        "proposal_feature_dim": "feature_dim", "proposal_time_resolution": "time_resolution",
+        "proposal_warmup": "warmup", "proposal_update_every": "update_every",
+        "use_proposal_weight_anneal": "weight_anneal", "proposal_weights_anneal_slope": "anneal_slope",
+        "proposal_weights_anneal_max_num_iters": "anneal_iterations",
+    },
+    "losses": {
+        "sam_loss_mult": "sam", "plane_tv_mult": "plane_tv", "l1_time_planes_mult": "l1_time_planes",
+        "time_smoothness_mult": "time_smoothness", "plane_tv_proposal_mult": "plane_tv_proposal",
+        "l1_time_planes_proposal_mult": "l1_time_planes_proposal",
+        "time_smoothness_proposal_mult": "time_smoothness_proposal", "interlevel_loss_mult": "interlevel",
+        "distortion_loss_mult": "distortion",
+    },
+    "render": {
+        "render_outputs": "outputs", "render_num_samples": "num_samples",
+        "render_num_proposal_samples": "num_proposal_samples", "render_chunk_samples": "chunk_samples",
+        "min_views": "min_views",
+    },
+}  # fmt: skip
+"""Each group's options in config files written before the groups (2026-12-07): flat name -> name in the group."""
+
 
 @contextlib.contextmanager
 def evaluating(model: Model) -> Iterator[None]:
