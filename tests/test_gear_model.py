@@ -1,6 +1,7 @@
 """GearNeRFModel: forward, losses, backward, parameter groups and evaluation on the CPU."""
 
 import pytest
+import yaml
 import torch
 
 from nerfstudio.cameras.rays import RayBundle
@@ -372,3 +373,19 @@ def test_render_sample_counts_apply_to_full_image_renders_only(base_sampler):
                 proposal=ProposalConfig(num_samples=(16, 8)),
                 render=FullImageRenders(num_proposal_samples=(8,)),
             )
+
+
+def test_a_config_file_written_before_the_option_groups_loads():
+    """A run's config.yml with the proposal, loss and render options flat (before the groups) loads into them."""
+    text = (
+        "!!python/object:gear_nerfstudio.model.gear_model.GearNeRFModelConfig\n"
+        "num_gears: 2\nnum_proposal_samples: !!python/tuple [8]\nproposal_warmup: 7\nmin_views: 3\n"
+        "render_num_samples: 5\ndistortion_loss_mult: 0.5\n"
+    )
+    config = yaml.load(text, Loader=yaml.Loader)
+    assert config.num_gears == 2 and config.num_samples == 64
+    assert config.proposal == ProposalConfig(num_samples=(8,), warmup=7)
+    assert config.render == FullImageRenders(num_samples=5, min_views=3)
+    assert config.losses == LossWeights(distortion=0.5)
+    assert not {"num_proposal_samples", "min_views", "distortion_loss_mult"} & set(vars(config))
+    assert yaml.load(yaml.dump(config), Loader=yaml.Loader) == config  # and today's files as before

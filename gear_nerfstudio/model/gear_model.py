@@ -119,11 +119,11 @@ class GearNeRFModelConfig(ModelConfig):
 
     def __setstate__(self, state: Dict[str, Any]) -> None:
         """Loads a run's config.yml, also one written before the groups above, whose options were flat
-        (``FLAT_OPTIONS``)."""
+        (``FLAT_OPTIONS``); options the file lacks take their defaults."""
         for group, options in FLAT_OPTIONS.items():
             if group not in state:
                 state[group] = GROUPS[group](**{new: state.pop(old) for old, new in options.items() if old in state})
-        self.__dict__.update(state)
+        self.__dict__.update({**vars(type(self)()), **state})
 
 
 GROUPS = {"proposal": ProposalConfig, "losses": LossWeights, "render": FullImageRenders}
