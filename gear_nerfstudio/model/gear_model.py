@@ -120,14 +120,14 @@ class GearNeRFModelConfig(ModelConfig):
     def __setstate__(self, state: Dict[str, Any]) -> None:
         """Loads a run's config.yml, also one written before the groups above, whose options were flat
         (``FLAT_OPTIONS``); options the file lacks take their defaults."""
+        defaults = vars(type(self)())
         for group, options in FLAT_OPTIONS.items():
             if group not in state:
-                state[group] = GROUPS[group](**{new: state.pop(old) for old, new in options.items() if old in state})
-        self.__dict__.update({**vars(type(self)()), **state})
+                flat = {new: state.pop(old) for old, new in options.items() if old in state}
+                state[group] = type(defaults[group])(**flat)
+        self.__dict__.update({**defaults, **state})
 
 
-GROUPS = {"proposal": ProposalConfig, "losses": LossWeights, "render": FullImageRenders}
-"""The model config's groups of options."""
 FLAT_OPTIONS: Dict[str, Dict[str, str]] = {
     "proposal": {
         "num_proposal_samples": "num_samples", "proposal_resolutions": "resolutions",
