@@ -198,16 +198,16 @@ def mean(values: List[Tuple[float, ...]], index: int) -> Optional[float]:
     return float(np.mean([v[index] for v in values])) if values else None
 
 
-def command_line() -> str:
-    """This benchmark's command as typed: ``python -m benchmarks <subcommand> [options]``."""
-    return "python -m benchmarks " + shlex.join(sys.argv[1:])
+def provenance(machine: str) -> List[str]:
+    """The lines naming this benchmark's command as typed (``python -m benchmarks <subcommand> [options]``) and the
+    machine."""
+    return [f"Command: `python -m benchmarks {shlex.join(sys.argv[1:])}`", "", f"Machine: {machine}."]
 
 
 def page(title: str, lines: Sequence[str], device: str = "cpu") -> str:
     """A results page: the title, the command, the date and the machine, then ``lines``."""
     today = datetime.date.today().isoformat()
-    header = [f"# {title}", "", f"Command: `{command_line()}`", "", f"Machine: {machine_description(device)}; {today}."]
-    return "\n".join([*header, "", *lines, ""])
+    return "\n".join([f"# {title}", "", *provenance(f"{machine_description(device)}; {today}"), "", *lines, ""])
 
 
 def table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> List[str]:

@@ -17,7 +17,7 @@ from typing import Dict, Sequence, Tuple
 
 import numpy as np
 
-from benchmarks.common import BIN, REAL, REPO, command_line, fill_page, machine_description, table
+from benchmarks.common import BIN, REAL, REPO, fill_page, machine_description, provenance, table
 
 CAPTURES = ("panoptic_basketball_video", "n3d_flame_steak_frame0")
 
@@ -73,6 +73,6 @@ class ProcessAccuracy:
         header = ["capture", "cameras", "centre % mean", "median", "max", "rotation deg mean", "median", "max",
                   "cameras within both", "named doubtful", "outside both, not named", "time"]  # fmt: skip
         machine = f"{machine_description()}; pycolmap {pycolmap.__version__}"
-        run = [*table(header, rows), "", *details, "", f"Command: `{command_line()}`", "", f"Machine: {machine}."]
+        run = [*table(header, rows), "", *details, "", *provenance(machine)]
         fill_page(self.output, {"run": "\n".join(run)})
         print("\n".join(run))

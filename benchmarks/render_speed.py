@@ -22,7 +22,7 @@ from nerfstudio.utils.eval_utils import eval_setup
 from PIL import Image
 from torch import Tensor
 
-from benchmarks.common import command_line, machine_description, table, timed, write_report
+from benchmarks.common import machine_description, provenance, table, timed, write_report
 from gear_nerfstudio.model.metrics import psnr
 
 
@@ -149,7 +149,7 @@ class RenderSpeed:
 
     def main(self) -> None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
-        lines = [f"Command: `{command_line()}`", "", f"Machine: {machine_description(device)}.", ""]
+        lines = [*provenance(machine_description(device)), ""]
         if self.samples is not None:
             rows = [row for c in self.configs for row in sample_rows(c, self.frames, self.repeats, list(self.samples))]
             header = ["run", "render samples: proposal iterations, n", "render s / frame", "pixels / s", "PSNR (dB)",
