@@ -1,16 +1,13 @@
 """GPU speed at Neural 3D Video size (21 cameras at 1352 x 1014, synthetic, Technicolor layout): ``gear-nerf``
 against its one-gear twin, trained with nerfstudio's own Trainer without viewer, writers or checkpoints. Per method:
-pre-training, timed gear updates, host syncs per iteration, windows of timed iterations (ms, rays / s, peak GiB),
-full-frame renders, and variants on the same model (render chunks, render sample counts, rays per batch).
-``benchmarks/results/gpu_speed.md`` says what each measures."""
+pre-training, timed gear updates, windows of timed iterations (ms, rays / s, peak GiB), full-frame renders and, with
+``--profile``, profiled iterations. ``benchmarks/results/gpu_speed.md`` says what each measures."""
 
 from __future__ import annotations
 
-import collections
 import copy
 import dataclasses
 import statistics
-import warnings
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Literal, Optional, Tuple
 
@@ -20,18 +17,15 @@ from nerfstudio.engine.trainer import Trainer
 from torch import Tensor
 
 from benchmarks.common import page, table, timed, write_report
-from benchmarks.render_speed import set_render_counts
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
 from gear_nerfstudio.gears.updater import GearUpdater
-from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_baseline
+from gear_nerfstudio.method_configs.gear_nerf import gear_nerf
 from gear_nerfstudio.model.gear_model import evaluating
-from gear_nerfstudio.model.metrics import psnr
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
-METHODS = {"gear-nerf": gear_nerf, "gear-nerf-one-gear": gear_nerf, "gear-nerf-baseline": gear_nerf_baseline}
+METHODS = ("gear-nerf", "gear-nerf-one-gear")
 """``gear-nerf-one-gear``: the gear-nerf preset with N_gear = 1 (K-Planes with the full time axis and uniform
-sampling at gear-nerf's sizes, rays and samples): the fair baseline, everything equal but the gears.
-``gear-nerf-baseline``: the registered one-gear preset, sized as the small CPU preset."""
+sampling at gear-nerf's sizes, rays and samples): the fair baseline, everything equal but the gears."""
 HELD_OUT_CAMERA = "10"
 """Held-out camera of the 3 x 7 rig (row 1, column 3: the centre)."""
 
@@ -40,7 +34,7 @@ class Run:
     """One method: its Trainer (set up without viewer, writers or checkpoints) and its measurements."""
 
     def __init__(self, method: str, args: "GpuSpeed") -> None:
-        config = copy.deepcopy(METHODS[method].config)
+        config = copy.deepcopy(gear_nerf.config)
         config.machine.device_type = args.device
         config.machine.seed = args.seed
         config.vis = "tensorboard"  # no viewer server; no writer is set up either (that happens in Trainer.train)
@@ -93,22 +87,6 @@ class Run:
             results.append({"seconds": seconds, **stats})
         return results
 
-    def syncs(self, iterations: int) -> collections.Counter:
-        """Host syncs per source line over ``iterations`` training iterations (CUDA's sync debug mode)."""
-        counts: collections.Counter = collections.Counter()
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            torch.cuda.set_sync_debug_mode("warn")
-            try:
-                for _ in range(iterations):
-                    self.iteration()
-            finally:
-                torch.cuda.set_sync_debug_mode("default")
-        for warning in caught:
-            if "synchronizing" in str(warning.message).lower():
-                counts[f"{Path(warning.filename).name}:{warning.lineno}"] += 1
-        return counts
-
     def windows(self, count: int, length: int) -> List[float]:
         """Seconds per iteration of ``count`` windows of ``length`` iterations."""
 
@@ -122,16 +100,14 @@ class Run:
         """The first held-out camera, on the model's device."""
         return self.trainer.pipeline.datamanager.eval_dataset.cameras[0:1].to(self.model.device)
 
-    def render(self, count: int) -> Tuple[List[float], Tensor]:
-        """Seconds per full-frame render of the held-out camera (after one warm-up render), and the image."""
+    def render(self, count: int) -> List[float]:
+        """Seconds per full-frame render of the held-out camera (after one warm-up render)."""
         camera = self.held_out_camera()
         with evaluating(self.model):
             self.model.get_outputs_for_camera(camera)
             if self.cuda:
                 torch.cuda.reset_peak_memory_stats()
-            image: Dict[str, Tensor] = {}
-            times = [self.timed(lambda: image.update(self.model.get_outputs_for_camera(camera))) for _ in range(count)]
-            return times, image["rgb"]
+            return [self.timed(lambda: self.model.get_outputs_for_camera(camera)) for _ in range(count)]
 
     def profile(self, iterations: int) -> Dict[str, float]:
         """Per training iteration, over ``iterations`` profiled ones: GPU busy ms (the kernels' own time), host ms
@@ -150,47 +126,12 @@ class Run:
         }
 
 
-def variants(run: Run, args: "GpuSpeed", reference: Tensor) -> List[Dict[str, Any]]:
-    """The variants on ``run``'s trained model, each restored afterwards: the renders first (PSNR against
-    ``reference``, the model's default render), then training at other batch sizes."""
-    rows: List[Dict[str, Any]] = []
-    config = run.model.config
-
-    def render(variant: str) -> None:
-        times, image = run.render(args.renders)
-        memory = torch.cuda.max_memory_allocated() if run.cuda else None
-        rows.append({"variant": variant, "renders": times, "psnr": float(psnr(image.float(), reference)),
-                     "memory": memory})  # fmt: skip
-
-    for chunk in args.render_chunks:
-        config.render.chunk_samples = chunk
-        render(f"render, chunks of {chunk:,} samples")
-    config.render.chunk_samples = args.samples_chunk
-    for counts in args.render_samples:
-        set_render_counts(config, counts)
-        chunk = f", chunks of {args.samples_chunk:,} samples" if args.samples_chunk else ""
-        render(f"render, samples {counts}{chunk}")
-    config.render.num_samples = config.render.num_proposal_samples = config.render.chunk_samples = None
-    sampler = run.trainer.pipeline.datamanager.train_pixel_sampler
-    default_rays = sampler.num_rays_per_batch
-    for rays in args.batches:
-        sampler.num_rays_per_batch = rays
-        run.windows(1, args.window)  # warm-up at the new size
-        rows.append({"variant": f"training, {rays} rays / batch", "rays": rays,
-                     "windows": run.windows(args.windows // 2, args.window)})  # fmt: skip
-    sampler.num_rays_per_batch = default_rays
-    if args.profile and run.cuda:
-        rows.append({"variant": f"training, {args.profile} iterations profiled", **run.profile(args.profile)})
-    return rows
-
-
 def measure(method: str, args: "GpuSpeed") -> Dict[str, Any]:
-    """Pre-training, gear updates, host syncs, timed windows, renders and variants of one method."""
+    """Pre-training, gear updates, timed windows, renders and profiled iterations of one method."""
     run = Run(method, args)
     for _ in range(args.pretrain):
         run.iteration()
     updates = run.gear_updates(args.updates) if run.model.num_gears > 1 else []
-    syncs = run.syncs(args.sync_iterations) if run.cuda else None
     for _ in range(args.warmup):
         run.iteration()
     if run.cuda:
@@ -198,7 +139,7 @@ def measure(method: str, args: "GpuSpeed") -> Dict[str, Any]:
     run.samples_per_ray.clear()
     windows = run.windows(args.windows, args.window)
     train_memory = torch.cuda.max_memory_allocated() if run.cuda else None
-    renders, image = run.render(args.renders)
+    renders = run.render(args.renders)
     datamanager = run.trainer.pipeline.datamanager
     camera = datamanager.eval_dataset.cameras
     result = {
@@ -207,8 +148,8 @@ def measure(method: str, args: "GpuSpeed") -> Dict[str, Any]:
         "samples_per_ray": float(torch.stack(run.samples_per_ray).mean()), "train_memory": train_memory,
         "renders": renders, "render_size": (int(camera.width[0]), int(camera.height[0])),
         "render_memory": torch.cuda.max_memory_allocated() if run.cuda else None,
-        "updates": updates, "syncs": syncs, "parameters": sum(p.numel() for p in run.model.parameters()),
-        "variants": variants(run, args, image),
+        "updates": updates, "parameters": sum(p.numel() for p in run.model.parameters()),
+        "profile": run.profile(args.profile) if args.profile and run.cuda else None,
     }  # fmt: skip
     del run
     if args.device == "cuda":
@@ -228,22 +169,16 @@ def iteration_ms(windows: List[float], rays: int) -> Tuple[str, str]:
 
 
 def markdown(results: List[Dict[str, Any]], args: "GpuSpeed") -> str:
-    rows, variant_rows, lines = [], [], []
+    rows, lines = [], []
     for r in results:
         render_ms = 1000 * statistics.median(r["renders"])
         rows.append([r["method"], r["rays"], r["base_samples"], f"{r['samples_per_ray']:.1f}",
                      *iteration_ms(r["windows"], r["rays"]), gib(r["train_memory"]),
                      f"{render_ms:.0f} ({1000 / render_ms:.2f})", gib(r["render_memory"]), f"{r['parameters']:,}"])
-        for v in r["variants"]:
-            ms = 1000 * statistics.median(v.get("renders", [0]))
-            if "busy_ms" in v:
-                busy = f"GPU busy {v['busy_ms']:.1f}, host {v['host_ms']:.1f}"
-                cells = [busy, f"{v['launches']:.0f} launches", "", ""]
-            elif "renders" in v:
-                cells = [f"{ms:.0f}", f"{1000 / ms:.2f}", f"{v['psnr']:.1f}", gib(v["memory"])]
-            else:
-                cells = [*iteration_ms(v["windows"], v["rays"]), "", ""]
-            variant_rows.append([r["method"], v["variant"], *cells])
+        if r["profile"] is not None:
+            p = r["profile"]
+            lines += ["", f"{r['method']}, {args.profile} training iterations profiled, per iteration: GPU busy "
+                      f"{p['busy_ms']:.1f} ms, host {p['host_ms']:.1f} ms, {p['launches']:.0f} kernel launches."]
         if r["updates"]:
             lines += ["", f"Gear updates of {r['method']} (seconds each; gear shares of the views' visible surface):"]
         for k, update in enumerate(r["updates"], start=1):
@@ -251,16 +186,10 @@ def markdown(results: List[Dict[str, Any]], args: "GpuSpeed") -> str:
             area = update.get("upshift_mask_area", float("nan"))
             lines.append(f"- update {k}: {update['seconds']:.2f} s, upshift mask area {area:.2f}, gears "
                          f"1-{len(shares)}: {' '.join(shares)}")
-        if r["syncs"] is not None:
-            per = {place: count / args.sync_iterations for place, count in r["syncs"].most_common()}
-            where = ", ".join(f"{place} x{count:g}" for place, count in per.items()) or "none"
-            lines += ["", f"Host syncs of {r['method']} per training iteration: {sum(per.values()):g} ({where})."]
     model_frames = f"{args.model_frames} frames (model `num_frames`)" if args.model_frames else "the scene's frames"
     header = ["method", "rays / batch", "base samples n", "samples / ray (mean)",
               "iteration ms: median [quartiles] (range)", "rays / s", "peak train GiB", "render ms / frame (FPS)",
               "peak render GiB", "parameters"]  # fmt: skip
-    variant_header = ["method", "variant", "iteration ms or render ms", "rays / s or FPS",
-                      "PSNR vs the default render (dB)", "peak render GiB"]  # fmt: skip
     width, height = results[0]["render_size"]
     return page("GPU speed at Neural 3D Video size: gear-nerf and the one-gear baseline", [
         f"Scene: synthetic (mixed motion), Technicolor layout, {args.rows} x {args.cols} cameras at {args.width} x "
@@ -268,7 +197,7 @@ def markdown(results: List[Dict[str, Any]], args: "GpuSpeed") -> str:
         f"method: {args.pretrain} training iterations, {args.updates} gear updates (gear-nerf), {args.warmup} warm-up "
         f"iterations, {args.windows} timed windows of {args.window} iterations. Renders: one full {width} x {height} "
         f"frame, median of {args.renders}. Seed {args.seed}.",
-        "", *table(header, rows), *(["", *table(variant_header, variant_rows)] if variant_rows else []), *lines,
+        "", *table(header, rows), *lines,
     ], args.device)  # fmt: skip
 
 
@@ -276,7 +205,7 @@ def markdown(results: List[Dict[str, Any]], args: "GpuSpeed") -> str:
 class GpuSpeed:
     """Train both methods at N3D size and time iterations, gear updates and renders; write ``gpu_speed.md``."""
 
-    methods: Tuple[Literal["gear-nerf", "gear-nerf-one-gear", "gear-nerf-baseline"], ...] = tuple(METHODS)  # type: ignore
+    methods: Tuple[Literal["gear-nerf", "gear-nerf-one-gear"], ...] = METHODS
     device: Literal["cuda", "cpu"] = "cuda"
     scene: Path = Path("outputs/gpu_speed/scene")
     """Synthetic scene folder, written if missing."""
@@ -289,20 +218,11 @@ class GpuSpeed:
     """The model's num_frames (planes' rows); 0: the scene's."""
     pretrain: int = 300
     updates: int = 2
-    sync_iterations: int = 5
     warmup: int = 20
     window: int = 10
     windows: int = 20
     renders: int = 3
     seed: int = 42
-    batches: Tuple[int, ...] = ()
-    """Also train at these rays per batch."""
-    render_chunks: Tuple[int, ...] = ()
-    """Also render at these chunk sizes (field samples)."""
-    render_samples: Tuple[str, ...] = ()
-    """Also render at these sample counts, "P1,P2,N" each."""
-    samples_chunk: Optional[int] = None
-    """Chunk size of the --render-samples renders."""
     profile: int = 0
     """Also profile this many training iterations (CUDA): GPU busy ms, host ms and kernel launches per iteration."""
     output: Path = Path("outputs/gpu_speed")
