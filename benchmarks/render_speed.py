@@ -1,8 +1,7 @@
 """Render and training speed of trained runs: full-image seconds per frame, pixels / s and samples per ray of the
 model's render path against nerfstudio's generic one (``Model.get_outputs_for_camera_ray_bundle``) on the same
 checkpoint, their difference and PSNR against the held-out frames, and training rays / s (``Trainer.train_iteration``,
-median of windows of 10 iterations after 5 warm-up ones, on a copy of the model). With ``--samples``, the model's
-render at other render sample counts against the run's own instead."""
+median of windows of 10 iterations after 5 warm-up ones, on a copy of the model)."""
 
 from __future__ import annotations
 
@@ -75,36 +74,6 @@ def render_rows(config: Path, frames: int, repeats: int, images: Optional[Path])
     return {name: float(np.mean(values)) for name, values in rows.items()}
 
 
-def set_render_counts(model_config, counts: str) -> None:
-    """Set a model config's render sample counts from "P1,P2,N" (the proposal iterations' counts, then n)."""
-    *proposal, model_config.render.num_samples = (int(value) for value in counts.split(","))
-    model_config.render.num_proposal_samples = tuple(proposal) or None
-
-
-def sample_rows(config: Path, frames: int, repeats: int, variants: List[str]) -> List[List[str]]:
-    """Table rows of the model's render path at other render sample counts (``render.num_proposal_samples`` and
-    ``render.num_samples``, given as "64,32,24": the proposal iterations' counts, then n) against the run's own:
-    seconds per frame, pixels per second, PSNR against the held-out frames and against the render at the run's
-    counts, averaged over the held-out frames."""
-    model, views = held_out(config, frames)
-    own = ",".join(str(n) for n in (*model.config.proposal.num_samples, model.config.num_samples))
-    model.get_outputs_for_camera_ray_bundle(views[0][0])  # warm-up: the first render of a process is slower
-    references, rows = None, []
-    for variant in [own, *variants]:
-        set_render_counts(model.config, variant)
-        renders = [timed(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], repeats) for rays, _ in views]
-        seconds = np.mean([time_s for time_s, _ in renders])
-        references = references or [rendered for _, rendered in renders]
-        rows.append([
-            config.parent, f"{variant} (the run's)" if variant == own else variant, f"{seconds:.2f}",
-            f"{views[0][0].shape.numel() / seconds:,.0f}",
-            f"{np.mean([float(psnr(rendered, truth)) for (_, rendered), (_, truth) in zip(renders, views)]):.3f}",
-            f"{np.mean([float(psnr(r, ref)) for (_, r), ref in zip(renders, references)]):.1f}",
-        ])  # fmt: skip
-        print(rows[-1], flush=True)
-    return rows
-
-
 def training_rate(config: Path, windows: int) -> float:
     """Median training rays per second of ``Trainer.train_iteration`` on the run's checkpoint."""
     trainer_config, _, _, _ = eval_setup(config, test_mode="test")
@@ -144,17 +113,10 @@ class RenderSpeed:
     """Append the table to this Markdown file."""
     images: Optional[Path] = None
     """Save each run's first frame (truth, generic, model, difference x 100) here."""
-    samples: Optional[Tuple[str, ...]] = None
-    """Instead: the render at these sample counts ("P1,P2,N": the proposal iterations' counts, then n)."""
 
     def main(self) -> None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
         lines = [*provenance(machine_description(device)), ""]
-        if self.samples is not None:
-            rows = [row for c in self.configs for row in sample_rows(c, self.frames, self.repeats, list(self.samples))]
-            header = ["run", "render samples: proposal iterations, n", "render s / frame", "pixels / s", "PSNR (dB)",
-                      "PSNR against the run's own counts (dB)"]  # fmt: skip
-            return write_report("\n".join(lines + table(header, rows)) + "\n\n", self.output, append=True)
         rows = []
         for config in self.configs:
             row = render_rows(config, self.frames, self.repeats, self.images)
