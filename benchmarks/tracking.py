@@ -1,8 +1,7 @@
 """Free-viewpoint tracking (Sec 4.5) from one click on a synthetic scene, against ground-truth object masks: trains a
 preset (or takes ``--config`` and its ``--scene``), clicks each object in a training camera at one time and runs
-``ns-gear-track`` to the held-out cam00 at every frame, once per propagation; mIoU / Acc. at the clicked time,
-t-mIoU / t-Acc. at the others (the paper's table), beside the same tracking on the SAM encoder's features of cam00's
-real frames. Writes ``<output>/tracking.md``."""
+``ns-gear-track`` (embedding propagation) to the held-out cam00 at every frame; mIoU / Acc. at the clicked time,
+t-mIoU / t-Acc. at the others (the paper's table). Writes ``<output>/tracking.md``."""
 
 from __future__ import annotations
 
@@ -15,16 +14,11 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 from scipy import ndimage
 
-from benchmarks.common import mean, ns, page, pct, table, write_report
+from benchmarks.common import ns, page, pct, table, write_report
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
-from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
-from gear_nerfstudio.sam.interface import Embedding
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
-from gear_nerfstudio.tracking.metrics import accuracy, iou
-from gear_nerfstudio.tracking.propagation import track
 
 OBJECT_NAMES = {1: "static sphere", 2: "slow sphere", 3: "fast sphere"}
-PROPAGATIONS = ("box", "embedding")
 
 
 @dataclasses.dataclass
@@ -66,31 +60,24 @@ class Tracking:
         trained = time.time()
         click_time = self.click_frame / (self.frames - 1)
         rows, details = [], []
-        held_out = self.held_out_embeddings(scene)
         for object_id in self.objects:
             x, y = self.click_pixel(scene, object_id)
-            for propagation in PROPAGATIONS:
-                summary = track_click(config, self.output / f"track_{object_id}_{propagation}", self.click_camera,
-                                      click_time, (x, y), "cam00", propagation, min_views=self.min_views)
-                metrics = summary["metrics"]
-                name = f"{OBJECT_NAMES.get(object_id, object_id)} ({object_id})"
-                rows.append([name, propagation, "Gear-NeRF rendered SAM features (ns-gear-track)",
-                             *(pct(metrics[k]) for k in ("mIoU", "accuracy", "t-mIoU", "t-accuracy"))])
-                rows.append([name, propagation, "same click on the encoder features of cam00's real frames",
-                             self.reference(held_out, summary, object_id, click_time, propagation)])
-                clicked = next(r for r in summary["masks"] if r["time"] == click_time)["prompt"]["points"]
-                details += per_time_table(
-                    f"{name}, {propagation}: click pixel ({x}, {y}) of {self.click_camera}, projected to cam00 pixel "
-                    f"{clicked}",
-                    summary["masks"], {r["time"]: (r.get("iou"), r.get("accuracy")) for r in summary["masks"]}, 2,
-                )  # fmt: skip
+            summary = track_click(config, self.output / f"track_{object_id}", self.click_camera, click_time, (x, y),
+                                  "cam00", min_views=self.min_views)  # fmt: skip
+            name = f"{OBJECT_NAMES.get(object_id, object_id)} ({object_id})"
+            rows.append([name, *(pct(summary["metrics"][k]) for k in ("mIoU", "accuracy", "t-mIoU", "t-accuracy"))])
+            clicked = next(r for r in summary["masks"] if r["time"] == click_time)["prompt"]["points"]
+            details += per_time_table(
+                f"{name}: click pixel ({x}, {y}) of {self.click_camera}, projected to cam00 pixel {clicked}",
+                summary["masks"], {r["time"]: (r.get("iou"), r.get("accuracy")) for r in summary["masks"]}, 2,
+            )  # fmt: skip
         lines = [
             f"Run: `{config}`; click in {self.click_camera} at time {click_time:.2f} (frame {self.click_frame}), "
             "one positive click at the ground-truth pixel deepest inside the object; target: held-out cam00 at "
             f"every frame time ({self.frames}).",
-            "", *table(["object", "propagation", "masks from", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
+            "", *table(["object", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
         ]  # fmt: skip
-        timing = (f"Training {trained - started:.0f} s (0 when --config is given), tracking ({len(self.objects) * 2} "
+        timing = (f"Training {trained - started:.0f} s (0 when --config is given), tracking ({len(self.objects)} "
                   f"ns-gear-track runs, each: model load, masks, overlay video) {time.time() - trained:.0f} s, wall "
                   "clock.")
         write_report(page("Tracking on a synthetic scene", [*lines, "", "Per time:", *details, "", timing]),
@@ -106,41 +93,6 @@ class Tracking:
         if not (ids == object_id).any():
             raise SystemExit(f"object {object_id} is not visible in {self.click_camera} frame {self.click_frame}")
         return deepest_pixel(ids == object_id)
-
-    @staticmethod
-    def held_out_embeddings(scene: Path) -> Tuple[BuiltinSamBackend, List[Embedding], np.ndarray]:
-        """The SAM backend, its encoder's embeddings of cam00's real frames, and cam00's object ids."""
-        import av
-
-        with av.open(str(scene / "cam00.mp4")) as container:
-            frames = [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
-        backend = BuiltinSamBackend()
-        ids = np.load(scene / "ground_truth" / "cam00.npz")["object_ids"]
-        return backend, [backend.encode(frame) for frame in frames], ids
-
-    def reference(
-        self,
-        held_out: Tuple[BuiltinSamBackend, List[Embedding], np.ndarray],
-        summary: Dict,
-        object_id: int,
-        click_time: float,
-        propagation: str,
-    ) -> str:
-        """mIoU | Acc. | t-mIoU | t-Acc. of `track` with the same projected click on cam00's real frames."""
-        backend, embeddings, ids = held_out
-        clicked = next(record for record in summary["masks"] if record["time"] == click_time)
-        masks = track(
-            backend,
-            lambda t: embeddings[round(t * (self.frames - 1))],
-            np.array(clicked["prompt"]["points"]),
-            np.array(clicked["prompt"]["labels"]),
-            click_time,
-            summary["times"],
-            self.frames,
-            propagation,
-        )
-        scores = {m.time: mask_scores(m.mask, ids[round(m.time * (self.frames - 1))] == object_id) for m in masks}
-        return summary_cells(scores, click_time)
 
 
 def train_preset(output: Path, iterations: int, seed: int, device: str, options: List[str]) -> Path:
@@ -163,21 +115,9 @@ def deepest_pixel(mask: np.ndarray) -> Tuple[float, float]:
     return col + 0.5, row + 0.5
 
 
-def mask_scores(mask: np.ndarray, truth: np.ndarray) -> Tuple[float, float]:
-    """IoU and accuracy of a mask against the truth."""
-    return iou(mask, truth), accuracy(mask, truth)
-
-
-def summary_cells(scores: Dict[float, Tuple[float, float]], click_time: float) -> str:
-    """mIoU | Acc. at the clicked time | t-mIoU | t-Acc. at the others (%), from (IoU, accuracy) by time."""
-    at_click = [v for t, v in scores.items() if t == click_time]
-    other = [v for t, v in scores.items() if t != click_time]
-    return " | ".join(pct(mean(values, index)) for values in (at_click, other) for index in (0, 1))
-
-
 def track_click(
     config: Path, folder: Path, camera: str, click_time: float, pixel: Tuple[float, float], target: str,
-    propagation: str, video: bool = True, log: Optional[Path] = None, min_views: Optional[int] = None,
+    video: bool = True, log: Optional[Path] = None, min_views: Optional[int] = None,
 ) -> Dict:
     """`ns-gear-track` of one positive click at `pixel` of `camera` into the `target` camera(s), written to
     `folder` (with its overlay videos when `video`; its output to `log` when given; with `--min-views` when
@@ -185,8 +125,8 @@ def track_click(
     ns(
         "ns-gear-track", "--load-config", str(config), "--output-dir", str(folder), "--overwrite", "--click-camera",
         camera, "--click-time", str(click_time), "--positive", str(pixel[0]), str(pixel[1]), "--target-cameras",
-        target, "--propagation", propagation, "--video" if video else "--no-video",
-        *([] if min_views is None else ["--min-views", str(min_views)]), log=log,
+        target, "--video" if video else "--no-video", *([] if min_views is None else ["--min-views", str(min_views)]),
+        log=log,
     )  # fmt: skip
     return json.loads((folder / "tracking.json").read_text())
 

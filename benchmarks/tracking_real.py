@@ -1,9 +1,8 @@
 """Free-viewpoint tracking (Sec 4.5) on real video (CMU Panoptic basketball, scored against its foreground masks;
-a mask component of at least PERSON_SHARE of the image is one person): first the SAM backend alone on the ground-truth
-frames (one click per person, best candidate mask, the grid's ceiling), then through the rendered 4D embedding: trains
-a preset (or takes ``--config``), clicks each person in ``--click-camera`` at ``--click-frame`` and runs
-``ns-gear-track`` into the held-out camera at every frame, once per propagation; mIoU / Acc. and t-mIoU / t-Acc., and
-``overlay_person<k>_<propagation>.png`` (tracked mask red, true outline green). Writes ``<output>/tracking_real.md``."""
+a mask component of at least PERSON_SHARE of the image is one person) through the rendered 4D embedding: trains a
+preset (or takes ``--config``), clicks each person in ``--click-camera`` at ``--click-frame`` and runs
+``ns-gear-track`` into the held-out camera at every frame; mIoU / Acc. and t-mIoU / t-Acc., and
+``overlay_person<k>.png`` (tracked mask red, true outline green). Writes ``<output>/tracking_real.md``."""
 
 from __future__ import annotations
 
@@ -19,19 +18,13 @@ from PIL import Image
 from scipy import ndimage
 
 from benchmarks.common import REAL, mean, page, pct, read_mask, table, write_report
-from benchmarks.tracking import (PROPAGATIONS, deepest_pixel, mask_scores, per_time_table, summary_cells, track_click,
-                                 train_preset)
-from gear_nerfstudio.sam.builtin_backend import BuiltinSamBackend
-from gear_nerfstudio.sam.interface import cells_per_pixel
+from benchmarks.tracking import deepest_pixel, per_time_table, track_click, train_preset
 from gear_nerfstudio.tracking.metrics import accuracy, iou
-from gear_nerfstudio.tracking.propagation import mask_cells
 
 CAPTURE = REAL / "panoptic_basketball"
 PERSON_SHARE = 1000 / (320 * 180)
 """Smallest mask component counted as a person, as a share of the image (at 320x180 the ball is 400-600 pixels,
 the people 1,300-13,000)."""
-SEGMENTER_FRAMES = 20
-"""Frames per camera, evenly spread, on which the segmenter is scored without the NeRF."""
 OVERLAY_FRAMES = 5
 """Held-out frames, evenly spread, in each overlay picture."""
 
@@ -91,7 +84,7 @@ def shrink(mask: np.ndarray, factor: int) -> np.ndarray:
 
 @dataclasses.dataclass
 class TrackingReal:
-    """Score the SAM backend on a capture's frames, then tracking through a run trained on it."""
+    """Score tracking through a run trained on a capture."""
 
     output: Path = Path("outputs/tracking_real")
     capture: Path = CAPTURE
@@ -125,8 +118,6 @@ class TrackingReal:
         frames = len(list((masks / self.held_out).glob("*.png")))
         frames = frames if self.frame_count is None else min(frames, self.frame_count)
         capture = Capture(self.capture)
-        lines = [*self.segmenter_on_frames(capture, masks, frames), ""]
-        segmented = time.time()
         config = self.config or self.train(capture)
         trained = time.time()
         click_time = self.click_frame / (frames - 1)
@@ -141,71 +132,30 @@ class TrackingReal:
         rows, details, refusals = [], [], []
         for index, person in enumerate(clicked_people):
             x, y = (value / self.downscale for value in deepest_pixel(person))
-            for propagation in PROPAGATIONS:
-                folder = self.output / f"track_person{index}_{propagation}"
-                log = self.output / f"track_person{index}_{propagation}.log"
-                try:
-                    summary = track_click(
-                        config, folder, self.click_camera, click_time, (x, y), self.held_out, propagation, False, log,
-                        self.min_views,
-                    )
-                except subprocess.CalledProcessError:
-                    # A refused click is a failed track: no mask at any time.
-                    rows.append([f"{index} (click {x:.1f}, {y:.1f})", propagation, "0.0 | n/a | 0.0 | n/a"])
-                    refusals.append(f"- person {index}, {propagation}: IoU 0 at every time, `ns-gear-track` refused "
-                                    f"the click: {refusal(log)}")  # fmt: skip
-                    continue
-                scores, truth = score(folder, summary, held_out, click_time)
-                write_overlay(self.output / f"overlay_person{index}_{propagation}.png", overlay_frames, folder, summary,
-                              truth)  # fmt: skip
-                rows.append([f"{index} (click {x:.1f}, {y:.1f})", propagation, summary_cells(scores, click_time)])
-                details += per_time_table(f"person {index}, {propagation}", summary["masks"], scores, 3)
-        lines += [
+            folder, log = self.output / f"track_person{index}", self.output / f"track_person{index}.log"
+            try:
+                summary = track_click(config, folder, self.click_camera, click_time, (x, y), self.held_out, False, log,
+                                      self.min_views)  # fmt: skip
+            except subprocess.CalledProcessError:
+                # A refused click is a failed track: no mask at any time.
+                rows.append([f"{index} (click {x:.1f}, {y:.1f})", "0.0 | n/a | 0.0 | n/a"])
+                refusals.append(f"- person {index}: IoU 0 at every time, `ns-gear-track` refused the click: "
+                                f"{refusal(log)}")  # fmt: skip
+                continue
+            scores, truth = score(folder, summary, held_out, click_time)
+            write_overlay(self.output / f"overlay_person{index}.png", overlay_frames, folder, summary, truth)
+            rows.append([f"{index} (click {x:.1f}, {y:.1f})", summary_cells(scores, click_time)])
+            details += per_time_table(f"person {index}", summary["masks"], scores, 3)
+        lines = [
             f"Run: `{config}`; click in camera {self.click_camera} at time {click_time:.3f} (frame "
             f"{self.click_frame}), one positive click per person at the mask pixel deepest inside them; target: "
-            f"held-out camera {self.held_out} at every frame time ({frames}).",
-            "", *table(["person", "propagation", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
+            f"held-out camera {self.held_out} at every frame time ({frames}), embedding propagation.",
+            "", *table(["person", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
             *([""] if refusals else []), *refusals, "", "Per time:", *details, "",
-            f"Segmenter on frames {segmented - started:.0f} s, training {trained - segmented:.0f} s (0 when "
-            f"--config is given), tracking ({len(clicked_people) * len(PROPAGATIONS)} ns-gear-track runs) "
-            f"{time.time() - trained:.0f} s, wall clock.",
+            f"Training {trained - started:.0f} s (0 when --config is given), tracking ({len(clicked_people)} "
+            f"ns-gear-track runs) {time.time() - trained:.0f} s, wall clock.",
         ]  # fmt: skip
         write_report(page("Tracking on a real capture", lines), self.output / "tracking_real.md")
-
-    def segmenter_on_frames(self, capture: Capture, masks: Path, frames: int) -> List[str]:
-        """mIoU / accuracy of one click per person on the backend's encoding of masked frames (SEGMENTER_FRAMES per
-        camera), the best of the candidate masks, and the grid's ceiling."""
-        backend = BuiltinSamBackend()
-        grid = backend.grid_size
-        results: Dict[str, List[Tuple[float, ...]]] = {}
-        chosen = sorted({round(k) for k in np.linspace(0, frames - 1, min(frames, SEGMENTER_FRAMES))})
-        for camera in sorted(folder.name for folder in masks.iterdir() if folder.is_dir()):
-            for frame, rgb in capture.frames(camera, chosen).items():
-                embedding = backend.encode(rgb)
-                for person in people(masks, camera, frame):
-                    mask, _ = backend.decode(embedding, np.array([deepest_pixel(person)]), np.array([1]))
-                    cells = mask_cells(person, grid)
-                    ceiling = backend.upsample(cells, person.shape, cells_per_pixel(person.shape, grid))
-                    results.setdefault(camera, []).append(
-                        (iou(mask[0], person), accuracy(mask[0], person), max(iou(m, person) for m in mask),
-                         iou(ceiling, person))
-                    )  # fmt: skip
-        everything = [value for values in results.values() for value in values]
-        rows = []
-        for name, values in [*results.items(), ("all", everything)]:
-            ious = np.array([v[0] for v in values])
-            rows.append([name, len(values), pct(mean(values, 0)), pct(mean(values, 1)), pct(float(np.median(ious))),
-                         f"{100 * float(np.mean(ious >= 0.5)):.0f} %", pct(mean(values, 2)), pct(mean(values, 3))])
-        header = ["cameras", "clicks", "mIoU", "Acc.", "median IoU", "IoU >= 0.5", "best of the masks", "grid ceiling"]
-        return [
-            f"SAM backend `{backend.name}` on the real frames ({len(results)} masked cameras x {len(chosen)} frames, "
-            f"{len(everything)} person clicks):",
-            "", *table(header, rows), "",
-            "mIoU is of the decoder's first mask; *best of the masks* takes the best of all the candidate masks it "
-            "returns (as if a perfect score picked among them); *grid ceiling* is the person's own mask "
-            f"reduced to the {grid} x {grid} cells and decoded back the way the decoder upsamples: about the "
-            "best a mask on this grid can do.",
-        ]  # fmt: skip
 
     def train(self, capture: Capture) -> Path:
         options = [
@@ -241,8 +191,15 @@ def score(
     for record in summary["masks"]:
         predicted = np.asarray(Image.open(folder / record["mask"])) > 0
         target = person[round(record["time"] * (frames - 1))]
-        scores[record["time"]] = mask_scores(predicted, target)
+        scores[record["time"]] = iou(predicted, target), accuracy(predicted, target)
     return scores, person
+
+
+def summary_cells(scores: Dict[float, Tuple[float, float]], click_time: float) -> str:
+    """mIoU | Acc. at the clicked time | t-mIoU | t-Acc. at the others (%), from (IoU, accuracy) by time."""
+    at_click = [v for t, v in scores.items() if t == click_time]
+    other = [v for t, v in scores.items() if t != click_time]
+    return " | ".join(pct(mean(values, index)) for values in (at_click, other) for index in (0, 1))
 
 
 def write_overlay(
