@@ -1,5 +1,5 @@
 """What a scene costs at the datasets' real sizes (``DATASETS``), on real content upscaled to them: disk of the frame
-and SAM caches (``--only disk``, ``sam``), and peak host memory, seconds per iteration and render speed of short
+and SAM caches (``--only disk``), and peak host memory, seconds per iteration and render speed of short
 ns-train runs on the CPU (``--only train``). Records accumulate in ``<output>/records.json``; every run rewrites the
 tables from them (``benchmarks/results/real_size_costs.md`` says what each column measures)."""
 
@@ -8,8 +8,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import datetime
-import importlib
-import importlib.util
 import json
 import os
 import shlex
@@ -19,7 +17,6 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from types import ModuleType
 from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
@@ -55,7 +52,7 @@ SAM_IMAGES = 2
 """Frames per dataset and content encoded for SAM."""
 RENDER_DIVISOR = 16
 """The held-out render is timed once at 1 / RENDER_DIVISOR of the training size; the first iteration is left out of
-the median; gear updates are off; only N3D trains (with the first method) at every frame count."""
+the median; gear updates are off."""
 PANOPTIC_SIZE = (320, 180)
 
 
@@ -120,36 +117,24 @@ def measure_frames(dataset: Dataset, content: str, images: Sequence[Image.Image]
 def training_frames(work: Path, dataset: Dataset, content: str) -> List[Path]:
     """The frames at the training size that `measure_frames` left: the cached PNGs, or the sources read in place."""
     folder = content_folder(work, dataset, content)
-    frames = sorted((folder / "frame-cache").rglob("*.png") if dataset.files == "video" else folder.glob("frame*.png"))
-    if not frames:
-        raise FileNotFoundError(f"{folder}: no frames of {dataset.name} / {content}; run the disk part first")
-    return frames
+    return sorted((folder / "frame-cache").rglob("*.png") if dataset.files == "video" else folder.glob("frame*.png"))
 
 
-def feature_cache_module(path: Optional[Path]) -> ModuleType:
-    """The SAM feature cache module: the package's, or one from a file (e.g. an earlier version from git)."""
-    if path is None:
-        return importlib.import_module("gear_nerfstudio.sam.feature_cache")
-    spec = importlib.util.spec_from_file_location("feature_cache_under_test", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def measure_sam(frames: Sequence[Path], folder: Path, module: ModuleType, count: int) -> Dict[str, Any]:
-    """SAM cache files of the first `count` frames, written by `module`'s SamFeatureCache with the built-in backend."""
+def measure_sam(frames: Sequence[Path], folder: Path, count: int) -> Dict[str, Any]:
+    """SAM cache files of the first `count` frames, written by SamFeatureCache with the built-in backend."""
     from gear_nerfstudio.sam.config import BuiltinSamConfig
+    from gear_nerfstudio.sam.feature_cache import MAGIC, SamFeatureCache
 
     shutil.rmtree(folder, ignore_errors=True)
     encoded = list(frames[:count])
     started = time.perf_counter()
-    module.SamFeatureCache(BuiltinSamConfig().setup(), folder, encoded).precompute()
+    SamFeatureCache(BuiltinSamConfig().setup(), folder, encoded).precompute()
     seconds = (time.perf_counter() - started) / len(encoded)
     files = [p for p in folder.rglob("*") if p.is_file()]
     if len(files) != len(encoded):
         raise RuntimeError(f"{folder}: expected {len(encoded)} cache files, found {len(files)}")
     with open(files[0], "rb") as handle:
-        sam_format = handle.read(len(module.MAGIC)).decode("ascii", "replace")
+        sam_format = handle.read(len(MAGIC)).decode("ascii", "replace")
     return {
         "sam_format": sam_format,
         "sam_files_measured": len(files),
@@ -315,27 +300,7 @@ def train_table(records: List[Dict[str, Any]]) -> List[str]:
               "**(measured)**", "gear updates run", "held-out render: size, s / frame, FPS **(measured)**",
               "samples / ray", "parameters at these frames **(measured)**", "parameters at the real frame count "
               "**(measured, model built)**", "training memory added at the real frame count, at most (computed)"]
-    return table(header, rows) + ["", *frame_growth(records)]
-
-
-def frame_growth(records: List[Dict[str, Any]]) -> List[str]:
-    """Lines comparing runs of one dataset size and method at different frame counts."""
-    lines = []
-    for name in DATASETS:
-        for method in sorted({r["method"] for r in records}):
-            runs = [r for r in records if (r["dataset"], r["method"]) == (name, method)]
-            runs.sort(key=lambda r: r["frames"])
-            if len(runs) < 2:
-                continue
-            low, high = runs[0], runs[-1]
-            parameters = high["parameter_bytes"] - low["parameter_bytes"]
-            lines.append(
-                f"- {name} size, {method}: peak RSS {size(low['peak_rss_bytes'])} at {low['frames']} frames, "
-                f"{size(high['peak_rss_bytes'])} at {high['frames']} frames (**measured**, difference "
-                f"{size(high['peak_rss_bytes'] - low['peak_rss_bytes'])}); parameters {size(parameters)}, i.e. at most "
-                f"{size(4 * parameters)} of training memory (*computed*)."
-            )
-    return lines
+    return table(header, rows)
 
 
 def parts(records: Dict[str, Any]) -> Dict[str, str]:
@@ -354,15 +319,13 @@ class RealSizeCosts:
     """Working folder: scenes, caches, runs, records.json, real_size_costs.md (the tables)."""
     results: Optional[Path] = None
     """Also write the tables into real_size_costs.md here, between its ``<!-- part -->`` markers."""
-    only: Optional[Literal["disk", "sam", "train"]] = None
-    """One part ('sam': the SAM cache alone, on the frames of an earlier disk run); the other parts' records stay."""
-    sam_cache_module: Optional[Path] = None
-    """Measure the SAM cache of this feature_cache.py (e.g. an earlier version from git) instead of the package's."""
+    only: Optional[Literal["disk", "train"]] = None
+    """One part; the other part's records stay."""
     datasets: Tuple[Literal["Technicolor", "N3D", "Immersive"], ...] = ("Technicolor", "N3D", "Immersive")
     methods: Tuple[str, ...] = ("gear-nerf", "gear-nerf-baseline")
     iterations: int = 4
     """Iterations per run."""
-    frame_counts: Tuple[int, ...] = (3, 8)
+    frames: int = 3
     """Frames of the training scenes (the panoptic capture has 20)."""
 
     def main(self) -> None:
@@ -372,8 +335,8 @@ class RealSizeCosts:
         parts_run = ["disk", "train"] if self.only is None else [self.only]
         self.output.mkdir(parents=True, exist_ok=True)
         load = os.getloadavg()[0]
-        if "disk" in parts_run or "sam" in parts_run:
-            records["disk"] = self.measure_disk(records["disk"], "disk" in parts_run)
+        if "disk" in parts_run:
+            records["disk"] = self.measure_disk(records["disk"])
         command = shlex.join(["nice", "-n", str(os.nice(0)), ".venv/bin/python", "-m", "benchmarks", *sys.argv[1:]])
         invocation = {"command": command, "parts": parts_run, "machine": machine_description("cpu")}
         records["invocations"].insert(0, invocation)
@@ -389,33 +352,26 @@ class RealSizeCosts:
                 fill_page(self.results / "real_size_costs.md", generated)
 
         save()
-        first = (self.methods[0], "N3D")  # trains at every frame count, the others at the first
-        runs = [(name, method, frames) for method in self.methods for name in self.datasets
-                for frames in (self.frame_counts if (method, name) == first else self.frame_counts[:1])]  # fmt: skip
-        for name, method, frames in runs if "train" in parts_run else []:
-            record = train_and_render(self, DATASETS[name], method, frames)
-            kept = [r for r in records["train"] if (r["dataset"], r["method"], r["frames"]) != (name, method, frames)]
+        runs = [(name, method) for method in self.methods for name in self.datasets]
+        for name, method in runs if "train" in parts_run else []:
+            record = train_and_render(self, DATASETS[name], method, self.frames)
+            kept = [r for r in records["train"] if (r["dataset"], r["method"]) != (name, method)]
             records["train"] = sorted(kept + [record], key=lambda r: (r["method"], list(DATASETS).index(r["dataset"]),
                                                                       r["frames"]))  # fmt: skip
             save()
         print((self.output / "real_size_costs.md").read_text())
 
-    def measure_disk(self, old: List[Dict[str, Any]], frames_too: bool) -> List[Dict[str, Any]]:
-        """The frame caches (when ``frames_too``, else an earlier run's records) and the SAM caches of every dataset
-        and content; ``old``'s records of other datasets, contents and SAM formats kept."""
-        module = feature_cache_module(self.sam_cache_module)
+    def measure_disk(self, old: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
+        """The frame and SAM caches of every dataset and content; ``old``'s records of other datasets, contents and
+        SAM formats kept."""
         measured = []
         for name in self.datasets:
             dataset = DATASETS[name]
             for source, images in real_content().items():
-                if frames_too:
-                    frames = measure_frames(dataset, source, images, self.output)
-                else:
-                    frames = next(r for r in old if (r["dataset"], r["content"]) == (name, source))
-                    frames = {k: v for k, v in frames.items() if not k.startswith("sam_")}
+                frames = measure_frames(dataset, source, images, self.output)
                 folder = content_folder(self.output, dataset, source) / "sam-cache"
-                sam = measure_sam(training_frames(self.output, dataset, source), folder, module, SAM_IMAGES)
-                measured.append({**frames, **sam, "sam_cache_module": str(self.sam_cache_module or module.__name__)})
+                measured.append({**frames, **measure_sam(training_frames(self.output, dataset, source), folder,
+                                                         SAM_IMAGES)})  # fmt: skip
                 print(f"[real_size_costs] disk: {measured[-1]}", flush=True)
         keys = {(r["dataset"], r["content"], r["sam_format"]) for r in measured}
         measured += [r for r in old if (r["dataset"], r["content"], r["sam_format"]) not in keys]
