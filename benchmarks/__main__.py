@@ -21,12 +21,12 @@ def subcommands():
     from benchmarks.process_accuracy import ProcessAccuracy
     from benchmarks.real_size_costs import RealSizeCosts
     from benchmarks.render_speed import RenderSpeed
-    from benchmarks.speed_accuracy import CompareViews, SpeedAccuracy
+    from benchmarks.speed_accuracy import SpeedAccuracy
     from benchmarks.tracking import Tracking
     from benchmarks.tracking_real import TrackingReal
 
     named = {
-        "speed-accuracy": SpeedAccuracy, "compare-views": CompareViews, "tracking": Tracking,
+        "speed-accuracy": SpeedAccuracy, "tracking": Tracking,
         "tracking-real": TrackingReal, "render-speed": RenderSpeed, "gpu-speed": GpuSpeed,
         "real-size-costs": RealSizeCosts, "process-accuracy": ProcessAccuracy, "footprint": Footprint,
         "gear-masks": GearMasks, "plane-kernel": PlaneKernel,
@@ -36,8 +36,8 @@ def subcommands():
 
 def entrypoint() -> None:
     """Run the chosen benchmark (or, as ``_train``, the timed ns-train child of ``common.timed_train``)."""
-    if len(sys.argv) > 3 and sys.argv[1] == TRAIN_CHILD:
-        return train_child(Path(sys.argv[2]), sys.argv[3] == "1", sys.argv[4:])
+    if len(sys.argv) > 2 and sys.argv[1] == TRAIN_CHILD:
+        return train_child(Path(sys.argv[2]), sys.argv[3:])
     tyro.cli(subcommands()).main()
 
 

@@ -1,4 +1,4 @@
-"""What the benchmarks share: paths, child commands, the timed ns-train child, the machine line, pages, pictures."""
+"""What the benchmarks share: paths, child commands, the timed ns-train child, the machine line, pages."""
 
 from __future__ import annotations
 
@@ -56,34 +56,29 @@ def run_measured(command: Sequence[str], log: Path) -> resource.struct_rusage:
     return usage
 
 
-def timed_train(arguments: Sequence[str], timing: Path, log: Path, save_before_update: bool = False):
+def timed_train(arguments: Sequence[str], timing: Path, log: Path):
     """ns-train ``arguments`` in a child process with ``train_child``'s hooks; (its timing record, its usage)."""
-    command = [sys.executable, "-P", "-m", "benchmarks", TRAIN_CHILD, str(timing), str(int(save_before_update))]
-    usage = run_measured([*command, *arguments], log)
+    usage = run_measured([sys.executable, "-P", "-m", "benchmarks", TRAIN_CHILD, str(timing), *arguments], log)
     return json.loads(timing.read_text()), usage
 
 
-def train_child(timing_path: Path, save_before_update: bool, arguments: List[str]) -> None:
+def train_child(timing_path: Path, arguments: List[str]) -> None:
     """Child process: ns-train with hooks on ``Trainer.train``, ``train_iteration``, ``save_checkpoint``.
 
     Writes to ``timing_path``: per checkpoint its step and the training time before it in wall-clock (``seconds``)
     and CPU seconds of the process, both from the start of ``Trainer.train`` minus earlier checkpoint writes; the
     totals; each iteration's seconds; the set-up seconds and peak RSS (bytes) before the loop; the gear updates run;
-    on CUDA the peak allocated MiB. ``save_before_update``: also a checkpoint right before the first gear update
-    (its step in ``before_first_update``).
+    on CUDA the peak allocated MiB.
     """
     import torch
     from nerfstudio.engine.trainer import Trainer
     from nerfstudio.scripts.train import entrypoint
 
-    from gear_nerfstudio.gears.updater import GearUpdater
-
     process_start = time.perf_counter()
     state: Dict[str, Any] = {"start": None, "saving": 0.0, "cpu_saving": 0.0, "checkpoints": {}, "iterations": []}
-    train, iteration, save, update = Trainer.train, Trainer.train_iteration, Trainer.save_checkpoint, GearUpdater.update
+    train, iteration, save = Trainer.train, Trainer.train_iteration, Trainer.save_checkpoint
 
     def timed_train(self) -> None:
-        state["trainer"] = self
         state["rss"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
         state["start"], state["cpu_start"] = time.perf_counter(), time.process_time()
         train(self)
@@ -96,7 +91,6 @@ def train_child(timing_path: Path, save_before_update: bool, arguments: List[str
             "checkpoints": checkpoints,
             "iteration_seconds": state["iterations"],
             "gear_updates": int(self.pipeline.gear_update_state.num_updates),
-            "before_first_update": state.get("before_first_update"),
             "peak_cuda_mib": torch.cuda.max_memory_allocated() / 1024**2 if torch.cuda.is_initialized() else None,
         }
         timing_path.write_text(json.dumps(timing, indent=1))
@@ -118,14 +112,7 @@ def train_child(timing_path: Path, save_before_update: bool, arguments: List[str
         state["saving"] += time.perf_counter() - entered
         state["cpu_saving"] += time.process_time() - cpu_entered
 
-    def update_after_checkpoint(self, step: int) -> Dict[str, float]:
-        if save_before_update and "before_first_update" not in state:
-            state["before_first_update"] = int(step)
-            state["trainer"].save_checkpoint(step)
-        return update(self, step)
-
     Trainer.train, Trainer.train_iteration, Trainer.save_checkpoint = timed_train, timed_iteration, timed_save
-    GearUpdater.update = update_after_checkpoint
     sys.argv = ["ns-train", *arguments]
     entrypoint()
 
@@ -171,21 +158,6 @@ def read_mask(masks: Path, camera: str, number: int) -> np.ndarray:
 def gear_mask_counts(levels: np.ndarray, moving: np.ndarray) -> np.ndarray:
     """Gear map (Eq 5 levels, H x W) against moving pixels: [moving at gear >= 2, moving, others at gear 1, others]."""
     return np.array([(levels[moving] >= 2).sum(), moving.sum(), (levels[~moving] == 1).sum(), (~moving).sum()])
-
-
-def contact_sheet(labels: Sequence[str], rows: Sequence[Sequence[Any]]):
-    """Tiles (PIL images) of equal size in rows, under a line of column labels."""
-    from PIL import Image, ImageDraw
-
-    width, height = rows[0][0].size
-    sheet = Image.new("RGB", (width * len(labels), 14 + height * len(rows)), "white")
-    draw = ImageDraw.Draw(sheet)
-    for c, label in enumerate(labels):
-        draw.text((c * width + 4, 1), label, fill="black")
-    for r, row in enumerate(rows):
-        for c, tile in enumerate(row):
-            sheet.paste(tile, (c * width, 14 + r * height))
-    return sheet
 
 
 def pct(value: Optional[float]) -> str:

@@ -10,7 +10,7 @@ from benchmarks.__main__ import subcommands
 from benchmarks.common import gear_mask_counts
 from benchmarks.speed_accuracy import METHODS, method_overrides
 
-NAMES = ("speed-accuracy", "compare-views", "tracking", "tracking-real", "render-speed", "gpu-speed",
+NAMES = ("speed-accuracy", "tracking", "tracking-real", "render-speed", "gpu-speed",
          "real-size-costs", "process-accuracy", "footprint", "gear-masks", "plane-kernel")  # fmt: skip
 
 
@@ -30,10 +30,10 @@ def test_speed_accuracy_options() -> None:
 
 def test_method_overrides() -> None:
     for method in METHODS:
-        assert all(" " not in arg and "{" not in arg for arg in method_overrides(method, 30, 3750))
-    assert method_overrides("proposal-warmup", 30, 3750) == ["--pipeline.model.proposal.warmup", "625"]
+        assert all(" " not in arg and "{" not in arg for arg in method_overrides(method))
+    assert method_overrides("kplanes") == ["--pipeline.model.num-gears", "1"]
     with pytest.raises(ValueError):
-        method_overrides("no-such-method", 30, 3750)
+        method_overrides("no-such-method")
 
 
 def test_gear_mask_counts() -> None:
