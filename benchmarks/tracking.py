@@ -59,18 +59,13 @@ class Tracking:
             config = self.train(scene)
         trained = time.time()
         click_time = self.click_frame / (self.frames - 1)
-        rows, details = [], []
+        rows = []
         for object_id in self.objects:
             x, y = self.click_pixel(scene, object_id)
             summary = track_click(config, self.output / f"track_{object_id}", self.click_camera, click_time, (x, y),
                                   "cam00", min_views=self.min_views)  # fmt: skip
             name = f"{OBJECT_NAMES.get(object_id, object_id)} ({object_id})"
             rows.append([name, *(pct(summary["metrics"][k]) for k in ("mIoU", "accuracy", "t-mIoU", "t-accuracy"))])
-            clicked = next(r for r in summary["masks"] if r["time"] == click_time)["prompt"]["points"]
-            details += per_time_table(
-                f"{name}: click pixel ({x}, {y}) of {self.click_camera}, projected to cam00 pixel {clicked}",
-                summary["masks"], {r["time"]: (r.get("iou"), r.get("accuracy")) for r in summary["masks"]}, 2,
-            )  # fmt: skip
         lines = [
             f"Run: `{config}`; click in {self.click_camera} at time {click_time:.2f} (frame {self.click_frame}), "
             "one positive click at the ground-truth pixel deepest inside the object; target: held-out cam00 at "
@@ -80,8 +75,7 @@ class Tracking:
         timing = (f"Training {trained - started:.0f} s (0 when --config is given), tracking ({len(self.objects)} "
                   f"ns-gear-track runs, each: model load, masks, overlay video) {time.time() - trained:.0f} s, wall "
                   "clock.")
-        write_report(page("Tracking on a synthetic scene", [*lines, "", "Per time:", *details, "", timing]),
-                     self.output / "tracking.md")  # fmt: skip
+        write_report(page("Tracking on a synthetic scene", [*lines, "", timing]), self.output / "tracking.md")
 
     def train(self, scene: Path) -> Path:
         data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache")]
@@ -129,17 +123,3 @@ def track_click(
         log=log,
     )  # fmt: skip
     return json.loads((folder / "tracking.json").read_text())
-
-
-def per_time_table(
-    title: str, records: List[Dict], scores: Dict[float, Tuple[Optional[float], Optional[float]]], time_digits: int
-) -> List[str]:
-    """A titled table of the tracked masks (tracking.json's "masks"): time, IoU and accuracy from `scores`
-    (by time), and the prompt: the click, or the box from another time (+ region points)."""
-    rows = []
-    for record in records:
-        prompt, (value_iou, value_accuracy) = record["prompt"], scores[record["time"]]
-        source = "click" if "from_time" not in prompt else f"box from t={prompt['from_time']:.2f}"
-        source += " + region points" if "from_time" in prompt and "points" in prompt else ""
-        rows.append([f"{record['time']:.{time_digits}f}", pct(value_iou), pct(value_accuracy), source])
-    return ["", f"{title}:", "", *table(["time", "IoU", "Acc.", "prompt"], rows)]

@@ -1,8 +1,8 @@
 """Free-viewpoint tracking (Sec 4.5) on real video (CMU Panoptic basketball, scored against its foreground masks;
 a mask component of at least PERSON_SHARE of the image is one person) through the rendered 4D embedding: trains a
 preset (or takes ``--config``), clicks each person in ``--click-camera`` at ``--click-frame`` and runs
-``ns-gear-track`` into the held-out camera at every frame; mIoU / Acc. and t-mIoU / t-Acc., and
-``overlay_person<k>.png`` (tracked mask red, true outline green). Writes ``<output>/tracking_real.md``."""
+``ns-gear-track`` into the held-out camera at every frame; mIoU / Acc. and t-mIoU / t-Acc. Writes
+``<output>/tracking_real.md``."""
 
 from __future__ import annotations
 
@@ -18,15 +18,13 @@ from PIL import Image
 from scipy import ndimage
 
 from benchmarks.common import REAL, mean, page, pct, read_mask, table, write_report
-from benchmarks.tracking import deepest_pixel, per_time_table, track_click, train_preset
+from benchmarks.tracking import deepest_pixel, track_click, train_preset
 from gear_nerfstudio.tracking.metrics import accuracy, iou
 
 CAPTURE = REAL / "panoptic_basketball"
 PERSON_SHARE = 1000 / (320 * 180)
 """Smallest mask component counted as a person, as a share of the image (at 320x180 the ball is 400-600 pixels,
 the people 1,300-13,000)."""
-OVERLAY_FRAMES = 5
-"""Held-out frames, evenly spread, in each overlay picture."""
 
 
 def people(masks: Path, camera: str, frame: int) -> List[np.ndarray]:
@@ -36,42 +34,15 @@ def people(masks: Path, camera: str, frame: int) -> List[np.ndarray]:
     return [labels == index + 1 for index in np.argsort(-sizes) if sizes[index] >= PERSON_SHARE * labels.size]
 
 
-@dataclasses.dataclass
-class Capture:
-    """A capture's frames and how `ns-train` reads it, in either layout."""
-
-    folder: Path
-
-    @property
-    def n3d(self) -> bool:
-        """Neural 3D Video layout (camNN.mp4 and poses_bounds.npy) rather than Technicolor's."""
-        return (self.folder / "poses_bounds.npy").exists()
-
-    def frames(self, camera: str, indices: List[int]) -> Dict[int, np.ndarray]:
-        """RGB uint8 frames of a camera, by index."""
-        if not self.n3d:
-            files = {index: self.folder / f"Basketball_undist_{index:05d}_{camera}.png" for index in indices}
-            return {index: np.asarray(Image.open(file).convert("RGB")) for index, file in files.items()}
-        import av
-
-        frames = {}
-        with av.open(str(self.folder / f"{camera}.mp4")) as container:
-            for number, frame in enumerate(container.decode(video=0)):
-                if number > max(indices):  # decode no further than the last frame asked for
-                    break
-                if number in indices:
-                    frames[number] = frame.to_ndarray(format="rgb24")
-        return frames
-
-    def dataparser(self, held_out: str, downscale: int, frame_count: Optional[int]) -> List[str]:
-        """The dataparser's subcommand and options for this capture with `held_out` held out, frames downscaled by
-        `downscale`, the first `frame_count` frames (all when None)."""
-        options = ["--held-out-camera", held_out, "--downscale-factor", str(downscale)]
-        if frame_count is not None:
-            options += ["--frame-count", str(frame_count)]
-        if self.n3d:
-            return ["neural-3d-video-data", "--data", str(self.folder), *options]
-        return ["technicolor-data", "--data", str(self.folder), "--near", "0.3", "--far", "7", *options]
+def dataparser(folder: Path, held_out: str, downscale: int, frame_count: Optional[int]) -> List[str]:
+    """The dataparser's subcommand and options for a capture in either layout with `held_out` held out, frames
+    downscaled by `downscale`, the first `frame_count` frames (all when None)."""
+    options = ["--held-out-camera", held_out, "--downscale-factor", str(downscale)]
+    if frame_count is not None:
+        options += ["--frame-count", str(frame_count)]
+    if (folder / "poses_bounds.npy").exists():  # Neural 3D Video layout (camNN.mp4 and poses_bounds.npy)
+        return ["neural-3d-video-data", "--data", str(folder), *options]
+    return ["technicolor-data", "--data", str(folder), "--near", "0.3", "--far", "7", *options]
 
 
 def shrink(mask: np.ndarray, factor: int) -> np.ndarray:
@@ -117,8 +88,7 @@ class TrackingReal:
         masks = self.capture.parent / f"{self.capture.name}_masks"
         frames = len(list((masks / self.held_out).glob("*.png")))
         frames = frames if self.frame_count is None else min(frames, self.frame_count)
-        capture = Capture(self.capture)
-        config = self.config or self.train(capture)
+        config = self.config or self.train()
         trained = time.time()
         click_time = self.click_frame / (frames - 1)
         clicked_people = people(masks, self.click_camera, self.click_frame)
@@ -126,10 +96,7 @@ class TrackingReal:
             [shrink(person, self.downscale) for person in people(masks, self.held_out, frame)]
             for frame in range(frames)
         ]
-        overlay_frames = capture.frames(
-            self.held_out, sorted({round(k) for k in np.linspace(0, frames - 1, OVERLAY_FRAMES)})
-        )
-        rows, details, refusals = [], [], []
+        rows, refusals = [], []
         for index, person in enumerate(clicked_people):
             x, y = (value / self.downscale for value in deepest_pixel(person))
             folder, log = self.output / f"track_person{index}", self.output / f"track_person{index}.log"
@@ -142,25 +109,23 @@ class TrackingReal:
                 refusals.append(f"- person {index}: IoU 0 at every time, `ns-gear-track` refused the click: "
                                 f"{refusal(log)}")  # fmt: skip
                 continue
-            scores, truth = score(folder, summary, held_out, click_time)
-            write_overlay(self.output / f"overlay_person{index}.png", overlay_frames, folder, summary, truth)
+            scores = score(folder, summary, held_out, click_time)
             rows.append([f"{index} (click {x:.1f}, {y:.1f})", summary_cells(scores, click_time)])
-            details += per_time_table(f"person {index}", summary["masks"], scores, 3)
         lines = [
             f"Run: `{config}`; click in camera {self.click_camera} at time {click_time:.3f} (frame "
             f"{self.click_frame}), one positive click per person at the mask pixel deepest inside them; target: "
             f"held-out camera {self.held_out} at every frame time ({frames}), embedding propagation.",
             "", *table(["person", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
-            *([""] if refusals else []), *refusals, "", "Per time:", *details, "",
+            *([""] if refusals else []), *refusals, "",
             f"Training {trained - started:.0f} s (0 when --config is given), tracking ({len(clicked_people)} "
             f"ns-gear-track runs) {time.time() - trained:.0f} s, wall clock.",
         ]  # fmt: skip
         write_report(page("Tracking on a real capture", lines), self.output / "tracking_real.md")
 
-    def train(self, capture: Capture) -> Path:
+    def train(self) -> Path:
         options = [
             *shlex.split(self.train_options), "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
-            *capture.dataparser(self.held_out, self.downscale, self.frame_count),
+            *dataparser(self.capture, self.held_out, self.downscale, self.frame_count),
             "--cache-dir", str(self.output / "frames"),
         ]  # fmt: skip
         return train_preset(self.output, self.iterations, self.seed, self.device, options)
@@ -175,9 +140,9 @@ def refusal(log: Path) -> str:
 
 def score(
     folder: Path, summary: Dict, held_out: List[List[np.ndarray]], click_time: float
-) -> Tuple[Dict[float, Tuple[float, float]], Dict[int, np.ndarray]]:
+) -> Dict[float, Tuple[float, float]]:
     """IoU and accuracy of every tracked mask against the clicked person's component in the held-out camera,
-    whose person components per frame are `held_out`, by time; and that component, by frame."""
+    whose person components per frame are `held_out`, by time."""
     frames = len(held_out)
     click_frame = round(click_time * (frames - 1))
     x, y = next(r for r in summary["masks"] if r["time"] == click_time)["prompt"]["points"][0]
@@ -192,7 +157,7 @@ def score(
         predicted = np.asarray(Image.open(folder / record["mask"])) > 0
         target = person[round(record["time"] * (frames - 1))]
         scores[record["time"]] = iou(predicted, target), accuracy(predicted, target)
-    return scores, person
+    return scores
 
 
 def summary_cells(scores: Dict[float, Tuple[float, float]], click_time: float) -> str:
@@ -200,23 +165,3 @@ def summary_cells(scores: Dict[float, Tuple[float, float]], click_time: float) -
     at_click = [v for t, v in scores.items() if t == click_time]
     other = [v for t, v in scores.items() if t != click_time]
     return " | ".join(pct(mean(values, index)) for values in (at_click, other) for index in (0, 1))
-
-
-def write_overlay(
-    path: Path, held_out: Dict[int, np.ndarray], folder: Path, summary: Dict, truth: Dict[int, np.ndarray]
-) -> None:
-    """The held-out frames `held_out` (OVERLAY_FRAMES of them, by index) side by side: the tracked mask in red over
-    the frame, the true person's outline in green."""
-    frames = len(truth)
-    records = {round(r["time"] * (frames - 1)): r for r in summary["masks"]}
-    tiles = []
-    for frame, rgb in sorted(held_out.items()):
-        if frame not in records:
-            continue
-        predicted = np.asarray(Image.open(folder / records[frame]["mask"])) > 0
-        tile = np.asarray(Image.fromarray(rgb).resize(predicted.shape[::-1], Image.BILINEAR)).astype(np.float64)
-        tile[predicted] = 0.5 * tile[predicted] + [127.5, 0.0, 0.0]
-        tile[truth[frame] & ~ndimage.binary_erosion(truth[frame], iterations=2)] = [0.0, 255.0, 0.0]
-        tiles.append(tile.astype(np.uint8))
-    Image.fromarray(np.concatenate(tiles, axis=1)).save(path)
-
