@@ -5,7 +5,6 @@ median of windows of 10 iterations after 5 warm-up ones, on a copy of the model)
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import statistics
 import time
@@ -18,18 +17,10 @@ import tyro
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.models.base_model import Model
 from nerfstudio.utils.eval_utils import eval_setup
-from PIL import Image
 from torch import Tensor
 
 from benchmarks.common import machine_description, provenance, table, timed, write_report
 from gear_nerfstudio.model.metrics import psnr
-
-
-def save_strip(path: Path, truth: Tensor, generic: Tensor, rendered: Tensor) -> None:
-    """The held-out frame, nerfstudio's render, the model's render and their difference x 100, side by side."""
-    difference = ((rendered - generic).abs() * 100).clamp(0, 1)
-    strip = torch.cat([truth, generic, rendered, difference], dim=1).clamp(0, 1)
-    Image.fromarray((strip.cpu().numpy() * 255).round().astype(np.uint8)).save(path)
 
 
 def held_out(config: Path, frames: int) -> Tuple[Model, List[Tuple[RayBundle, Tensor]]]:
@@ -44,22 +35,16 @@ def held_out(config: Path, frames: int) -> Tuple[Model, List[Tuple[RayBundle, Te
     return model, views
 
 
-def render_rows(config: Path, frames: int, repeats: int, images: Optional[Path]) -> Dict[str, float]:
-    """Render measurements of one run, averaged over its held-out frames; the first frame's images saved as
-    ``images/<run>.png`` when ``images`` is given."""
+def render_rows(config: Path, frames: int, repeats: int) -> Dict[str, float]:
+    """Render measurements of one run, averaged over its held-out frames."""
     model, views = held_out(config, frames)
     rows: Dict[str, List[float]] = {}
     for rays, truth in views:
         with torch.no_grad():
             generic_s, generic = timed(lambda: Model.get_outputs_for_camera_ray_bundle(model, rays), repeats)
-            # code from before the model's own render path (issue 25) has no `rendering`: both columns are then generic
-            with getattr(model, "rendering", lambda _: contextlib.nullcontext())("num_samples"):
+            with model.rendering("num_samples"):
                 model_s, rendered = timed(lambda: model.get_outputs_for_camera_ray_bundle(rays), repeats)
         difference = (rendered["rgb"] - generic["rgb"]).abs()
-        if images is not None and not rows:
-            images.mkdir(parents=True, exist_ok=True)
-            name = "_".join(config.parent.parts[-3:])
-            save_strip(images / f"render_speed_{name}.png", truth, generic["rgb"], rendered["rgb"])
         for name, value in {
             "pixels": rays.shape.numel(),
             "generic_s": generic_s,
@@ -111,15 +96,13 @@ class RenderSpeed:
     """Windows of 10 training iterations (median)."""
     output: Optional[Path] = None
     """Append the table to this Markdown file."""
-    images: Optional[Path] = None
-    """Save each run's first frame (truth, generic, model, difference x 100) here."""
 
     def main(self) -> None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
         lines = [*provenance(machine_description(device)), ""]
         rows = []
         for config in self.configs:
-            row = render_rows(config, self.frames, self.repeats, self.images)
+            row = render_rows(config, self.frames, self.repeats)
             rows.append([
                 config.parent, f"{row['pixels']:.0f}",
                 f"{row['generic_s']:.2f} -> {row['model_s']:.2f} ({row['generic_s'] / row['model_s']:.2f}x)",
