@@ -67,30 +67,24 @@ def train_child(timing_path: Path, arguments: List[str]) -> None:
 
     Writes to ``timing_path``: per checkpoint its step and the training time before it in wall-clock (``seconds``)
     and CPU seconds of the process, both from the start of ``Trainer.train`` minus earlier checkpoint writes; the
-    totals; each iteration's seconds; the set-up seconds and peak RSS (bytes) before the loop; the gear updates run;
-    on CUDA the peak allocated MiB.
+    totals; each iteration's seconds; on CUDA the peak allocated MiB.
     """
     import torch
     from nerfstudio.engine.trainer import Trainer
     from nerfstudio.scripts.train import entrypoint
 
-    process_start = time.perf_counter()
     state: Dict[str, Any] = {"start": None, "saving": 0.0, "cpu_saving": 0.0, "checkpoints": {}, "iterations": []}
     train, iteration, save = Trainer.train, Trainer.train_iteration, Trainer.save_checkpoint
 
     def timed_train(self) -> None:
-        state["rss"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
         state["start"], state["cpu_start"] = time.perf_counter(), time.process_time()
         train(self)
         checkpoints = [{"step": step, **times} for step, times in sorted(state["checkpoints"].items())]
         timing = {
-            "setup_seconds": state["start"] - process_start,
-            "max_rss_before_training_bytes": state["rss"],
             "train_seconds": checkpoints[-1]["seconds"] if checkpoints else None,
             "train_cpu_seconds": checkpoints[-1]["cpu_seconds"] if checkpoints else None,
             "checkpoints": checkpoints,
             "iteration_seconds": state["iterations"],
-            "gear_updates": int(self.pipeline.gear_update_state.num_updates),
             "peak_cuda_mib": torch.cuda.max_memory_allocated() / 1024**2 if torch.cuda.is_initialized() else None,
         }
         timing_path.write_text(json.dumps(timing, indent=1))

@@ -1,6 +1,6 @@
 """What a scene costs at the datasets' real sizes (``DATASETS``), on real content upscaled to them: disk of the frame
-and SAM caches (``--only disk``), and peak host memory, seconds per iteration and render speed of short
-ns-train runs on the CPU (``--only train``). Records accumulate in ``<output>/records.json``; every run rewrites the
+and SAM caches (``--only disk``), and peak host memory and seconds per iteration of short ns-train runs on the CPU
+(``--only train``). Records accumulate in ``<output>/records.json``; every run rewrites the
 tables from them (``benchmarks/results/real_size_costs.md`` says what each column measures)."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 from PIL import Image
 
-from benchmarks.common import REAL, fill_page, machine_description, run_measured, table, timed, timed_train
+from benchmarks.common import REAL, fill_page, machine_description, table, timed_train
 
 
 @dataclass(frozen=True)
@@ -50,9 +50,6 @@ DATASETS: Dict[str, Dataset] = {
 PANOPTIC = REAL / "panoptic_basketball"
 SAM_IMAGES = 2
 """Frames per dataset and content encoded for SAM."""
-RENDER_DIVISOR = 16
-"""The held-out render is timed once at 1 / RENDER_DIVISOR of the training size; the first iteration is left out of
-the median; gear updates are off."""
 PANOPTIC_SIZE = (320, 180)
 
 
@@ -61,15 +58,9 @@ def upscaled(image: Image.Image, size: Tuple[int, int]) -> np.ndarray:
 
 
 def real_content() -> Dict[str, List[Image.Image]]:
-    """Frame 0 of every camera of the two real captures."""
-    import av
-
-    n3d = []
-    for video in sorted((REAL / "n3d_flame_steak_frame0").glob("cam*.mp4")):
-        with av.open(str(video)) as container:
-            n3d.append(next(container.decode(video=0)).to_image())
-    panoptic = [Image.open(p) for p in sorted(PANOPTIC.glob("Basketball_undist_00000_*.png"))]
-    return {"panoptic_basketball (16 cameras)": panoptic, "n3d_flame_steak (21 cameras)": n3d}
+    """Frame 0 of every camera of the panoptic capture."""
+    frames = sorted(PANOPTIC.glob("Basketball_undist_00000_*.png"))
+    return {"panoptic_basketball (16 cameras)": [Image.open(p) for p in frames]}
 
 
 def disk_bytes(folder: Path) -> int:
@@ -178,13 +169,12 @@ def parameter_bytes(method: str, frames: int) -> int:
     return sum(p.numel() * p.element_size() for p in model.parameters())
 
 
-def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frames: int) -> Dict[str, Any]:
-    """One ns-train run (child process with timing hooks), then the render timing (another child)."""
+def train(args: "RealSizeCosts", dataset: Dataset, method: str, frames: int) -> Dict[str, Any]:
+    """One ns-train run (child process with timing hooks); the first iteration is left out of the median."""
     w, h = dataset.train_size
     scene = write_panoptic_scene(args.output / "scenes" / f"{w}x{h}-{frames}f", dataset.train_size, frames)
     name = f"{dataset.name}-{frames}f"
-    run_dir = args.output / "runs" / name / method / "run"
-    shutil.rmtree(run_dir, ignore_errors=True)
+    shutil.rmtree(args.output / "runs" / name / method / "run", ignore_errors=True)
     command = [
         method, "--output-dir", str(args.output / "runs"), "--experiment-name", name, "--timestamp", "run",
         "--max-num-iterations", str(args.iterations),
@@ -199,10 +189,6 @@ def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frame
     log_path = args.output / "runs" / f"{name}-{method}.log"
     print(f"[real_size_costs] {name} {method}: ns-train {shlex.join(command)}", flush=True)
     timing, usage = timed_train(command, args.output / "runs" / f"{name}-{method}.json", log_path)
-    render_path = args.output / "runs" / f"{name}-{method}-render.json"
-    run_measured([sys.executable, "-P", "-m", "benchmarks.real_size_costs", str(run_dir / "config.yml"),
-                  str(render_path)], log_path.with_suffix(".render.log"))
-    render = json.loads(render_path.read_text())
     iterations = timing["iteration_seconds"]
     record = {
         "dataset": dataset.name,
@@ -212,34 +198,14 @@ def train_and_render(args: "RealSizeCosts", dataset: Dataset, method: str, frame
         "iterations": args.iterations,
         "command": ["ns-train", *command],
         "peak_rss_bytes": usage.ru_maxrss * 1024,  # Linux: KiB
-        "rss_when_training_starts_bytes": timing["max_rss_before_training_bytes"],
-        "setup_seconds": timing["setup_seconds"],
-        "first_iteration_seconds": iterations[0],
         "median_iteration_seconds": statistics.median(iterations[1:]),
         "timed_iterations": len(iterations[1:]),
-        "gear_updates": timing["gear_updates"],
-        "render": render,
         "parameter_bytes": parameter_bytes(method, frames),
         "parameter_bytes_at_real_frames": parameter_bytes(method, dataset.frames),
     }
     print(f"[real_size_costs] {name} {method}: peak RSS {record['peak_rss_bytes'] / 2**20:.0f} MiB, "
-          f"{record['median_iteration_seconds']:.2f} s / iteration, render {render['seconds']}", flush=True)
+          f"{record['median_iteration_seconds']:.2f} s / iteration", flush=True)
     return record
-
-
-def render_child(config_path: Path, result_path: Path) -> None:
-    """Child process: load the run's last checkpoint and time one full render of the held-out camera's first frame at
-    1 / RENDER_DIVISOR of its size."""
-    from nerfstudio.utils.eval_utils import eval_setup
-
-    _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
-    camera = pipeline.datamanager.eval_dataset.cameras[0:1]
-    camera.rescale_output_resolution(1.0 / RENDER_DIVISOR)
-    with pipeline.model.rendering("num_samples"):
-        seconds, outputs = timed(lambda: pipeline.model.get_outputs_for_camera(camera), 1)
-    result = {"width": int(camera.width), "height": int(camera.height), "seconds": [seconds],
-              "samples_per_ray": float(outputs["num_samples"].float().mean())}  # fmt: skip
-    result_path.write_text(json.dumps(result))
 
 
 def size(value: float) -> str:
@@ -282,23 +248,16 @@ def setup_time_table(records: List[Dict[str, Any]]) -> List[str]:
 def train_table(records: List[Dict[str, Any]]) -> List[str]:
     rows = []
     for r in records:
-        d, render = DATASETS[r["dataset"]], r["render"]
-        seconds = statistics.median(render["seconds"])
+        d = DATASETS[r["dataset"]]
         rows.append([
             f"{d.train_size[0]}x{d.train_size[1]} ({d.name})", r["method"], f"{r['frames']} ({r['images']})",
-            size(r["peak_rss_bytes"]), size(r["rss_when_training_starts_bytes"]),
-            f"{r['median_iteration_seconds']:.2f} (of {r['timed_iterations']})",
-            f"{r['first_iteration_seconds']:.1f} s", f"{r['setup_seconds']:.0f}", r["gear_updates"],
-            f"{render['width']}x{render['height']}, {seconds:.1f} s, {1 / seconds:.2f}",
-            f"{render['samples_per_ray']:.1f}",
+            size(r["peak_rss_bytes"]), f"{r['median_iteration_seconds']:.2f} (of {r['timed_iterations']})",
             size(r["parameter_bytes"]), f"{size(r['parameter_bytes_at_real_frames'])} ({d.frames} frames)",
             size(4 * (r["parameter_bytes_at_real_frames"] - r["parameter_bytes"])),
         ])  # fmt: skip
     header = ["training size (dataset)", "method", "frames (images)", "peak RSS **(measured)**",
-              "RSS peak before the training loop **(measured)**", "s / iteration, median **(measured)**",
-              "first iteration **(measured)**", "s from ns-train's start (after imports) to the training loop "
-              "**(measured)**", "gear updates run", "held-out render: size, s / frame, FPS **(measured)**",
-              "samples / ray", "parameters at these frames **(measured)**", "parameters at the real frame count "
+              "s / iteration, median **(measured)**", "parameters at these frames **(measured)**",
+              "parameters at the real frame count "
               "**(measured, model built)**", "training memory added at the real frame count, at most (computed)"]
     return table(header, rows)
 
@@ -354,7 +313,7 @@ class RealSizeCosts:
         save()
         runs = [(name, method) for method in self.methods for name in self.datasets]
         for name, method in runs if "train" in parts_run else []:
-            record = train_and_render(self, DATASETS[name], method, self.frames)
+            record = train(self, DATASETS[name], method, self.frames)
             kept = [r for r in records["train"] if (r["dataset"], r["method"]) != (name, method)]
             records["train"] = sorted(kept + [record], key=lambda r: (r["method"], list(DATASETS).index(r["dataset"]),
                                                                       r["frames"]))  # fmt: skip
@@ -377,6 +336,3 @@ class RealSizeCosts:
         measured += [r for r in old if (r["dataset"], r["content"], r["sam_format"]) not in keys]
         return sorted(measured, key=lambda r: (list(DATASETS).index(r["dataset"]), r["content"], r["sam_format"]))
 
-
-if __name__ == "__main__":  # the render child of ``train_and_render``
-    render_child(Path(sys.argv[1]), Path(sys.argv[2]))

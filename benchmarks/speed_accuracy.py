@@ -156,7 +156,7 @@ class SpeedAccuracy:
         return all_methods[self.base_preset].max_num_iterations
 
     def run_dir(self, scene: str, method: str, seed: int) -> Path:
-        """Where one run's checkpoints, log, record and pictures go."""
+        """Where one run's checkpoints, log and record go."""
         return self.output / "runs" / scene / self.base_preset / f"{method}-seed{seed}"
 
     def train_command(self, scene: Scene, method: str, seed: int) -> List[str]:
@@ -199,7 +199,6 @@ class SpeedAccuracy:
             "iterations": self.preset_iterations(),
             "train_seconds": timing["train_seconds"],
             "train_cpu_seconds": timing["train_cpu_seconds"],
-            "setup_seconds": timing["setup_seconds"],
             "peak_rss_mib": usage.ru_maxrss / 1024.0,  # Linux: KiB
             "peak_cuda_mib": timing.get("peak_cuda_mib"),
             "checkpoints": evaluate_checkpoints(run_dir / "config.yml", timing["checkpoints"], self.eval_frames),
