@@ -42,8 +42,6 @@ class Tracking:
     click_frame: int = 2
     objects: Tuple[int, ...] = (2, 3)
     """Object ids to click, one at a time (mixed scene: 1 static, 2 slow, 3 fast sphere)."""
-    min_views: Optional[int] = None
-    """`ns-gear-track --min-views`; its default when None."""
 
     def main(self) -> None:
         started = time.time()
@@ -63,7 +61,7 @@ class Tracking:
         for object_id in self.objects:
             x, y = self.click_pixel(scene, object_id)
             summary = track_click(config, self.output / f"track_{object_id}", self.click_camera, click_time, (x, y),
-                                  "cam00", min_views=self.min_views)  # fmt: skip
+                                  "cam00")  # fmt: skip
             name = f"{OBJECT_NAMES.get(object_id, object_id)} ({object_id})"
             rows.append([name, *(pct(summary["metrics"][k]) for k in ("mIoU", "accuracy", "t-mIoU", "t-accuracy"))])
         lines = [
@@ -111,15 +109,13 @@ def deepest_pixel(mask: np.ndarray) -> Tuple[float, float]:
 
 def track_click(
     config: Path, folder: Path, camera: str, click_time: float, pixel: Tuple[float, float], target: str,
-    video: bool = True, log: Optional[Path] = None, min_views: Optional[int] = None,
+    video: bool = True, log: Optional[Path] = None,
 ) -> Dict:
     """`ns-gear-track` of one positive click at `pixel` of `camera` into the `target` camera(s), written to
-    `folder` (with its overlay videos when `video`; its output to `log` when given; with `--min-views` when
-    `min_views` is given); returns its tracking.json."""
+    `folder` (with its overlay videos when `video`; its output to `log` when given); returns its tracking.json."""
     ns(
         "ns-gear-track", "--load-config", str(config), "--output-dir", str(folder), "--overwrite", "--click-camera",
         camera, "--click-time", str(click_time), "--positive", str(pixel[0]), str(pixel[1]), "--target-cameras",
-        target, "--video" if video else "--no-video", *([] if min_views is None else ["--min-views", str(min_views)]),
-        log=log,
+        target, "--video" if video else "--no-video", log=log,
     )  # fmt: skip
     return json.loads((folder / "tracking.json").read_text())

@@ -7,7 +7,6 @@ preset (or takes ``--config``), clicks each person in ``--click-camera`` at ``--
 from __future__ import annotations
 
 import dataclasses
-import shlex
 import subprocess
 import time
 from pathlib import Path
@@ -76,11 +75,6 @@ class TrackingReal:
     """Train on the first this many frames (the dataparser's --frame-count); all by default."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Where `ns-train` trains (`--machine.device-type`); tracking uses the GPU when there is one."""
-    min_views: Optional[int] = None
-    """`ns-gear-track --min-views`; its default when None."""
-    train_options: str = ""
-    """More `ns-train` options for the method, as one string (`--train-options="--pipeline.model.gear-feature-dim
-    8"`), e.g. to train a baseline that differs in one setting."""
 
     def main(self) -> None:
         started = time.time()
@@ -101,8 +95,7 @@ class TrackingReal:
             x, y = (value / self.downscale for value in deepest_pixel(person))
             folder, log = self.output / f"track_person{index}", self.output / f"track_person{index}.log"
             try:
-                summary = track_click(config, folder, self.click_camera, click_time, (x, y), self.held_out, False, log,
-                                      self.min_views)  # fmt: skip
+                summary = track_click(config, folder, self.click_camera, click_time, (x, y), self.held_out, False, log)
             except subprocess.CalledProcessError:
                 # A refused click is a failed track: no mask at any time.
                 rows.append([f"{index} (click {x:.1f}, {y:.1f})", "0.0 | n/a | 0.0 | n/a"])
@@ -124,9 +117,9 @@ class TrackingReal:
 
     def train(self) -> Path:
         options = [
-            *shlex.split(self.train_options), "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
-            *dataparser(self.capture, self.held_out, self.downscale, self.frame_count),
-            "--cache-dir", str(self.output / "frames"),
+            "--pipeline.datamanager.sam-cache-dir", str(self.output / "sam"),
+            *dataparser(self.capture, self.held_out, self.downscale, self.frame_count), "--cache-dir",
+            str(self.output / "frames"),
         ]  # fmt: skip
         return train_preset(self.output, self.iterations, self.seed, self.device, options)
 
