@@ -1,13 +1,10 @@
-"""Render and training speed of trained runs: full-image seconds per frame, pixels / s and samples per ray of the
-model's render path against nerfstudio's generic one (``Model.get_outputs_for_camera_ray_bundle``) on the same
-checkpoint, their difference and PSNR against the held-out frames, and training rays / s (``Trainer.train_iteration``,
-median of windows of 10 iterations after 5 warm-up ones, on a copy of the model)."""
+"""Render speed of trained runs: full-image seconds per frame, pixels / s and samples per ray of the model's render
+path against nerfstudio's generic one (``Model.get_outputs_for_camera_ray_bundle``) on the same checkpoint, and
+their difference and PSNR against the held-out frames."""
 
 from __future__ import annotations
 
 import dataclasses
-import statistics
-import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -59,32 +56,9 @@ def render_rows(config: Path, frames: int, repeats: int) -> Dict[str, float]:
     return {name: float(np.mean(values)) for name, values in rows.items()}
 
 
-def training_rate(config: Path, windows: int) -> float:
-    """Median training rays per second of ``Trainer.train_iteration`` on the run's checkpoint."""
-    trainer_config, _, _, _ = eval_setup(config, test_mode="test")
-    trainer_config.load_dir = config.parent / "nerfstudio_models"
-    trainer_config.output_dir = Path("/tmp/render_speed")  # the run folder is never written
-    trainer_config.vis = "tensorboard"
-    trainer = trainer_config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    rays = trainer.pipeline.datamanager.config.train_num_rays_per_batch
-    step = trainer._start_step
-    for _ in range(5):
-        trainer.train_iteration(step)
-        step += 1
-    rates = []
-    for _ in range(windows):
-        start = time.perf_counter()
-        for _ in range(10):
-            trainer.train_iteration(step)
-            step += 1
-        rates.append(10 * rays / (time.perf_counter() - start))
-    return statistics.median(rates)
-
-
 @dataclasses.dataclass
 class RenderSpeed:
-    """Measure the render and training speed of trained runs; print the table, append it to ``--output``."""
+    """Measure the render speed of trained runs; print the table, append it to ``--output``."""
 
     configs: tyro.conf.Positional[Tuple[Path, ...]]
     """config.yml of trained runs."""
@@ -92,8 +66,6 @@ class RenderSpeed:
     """Held-out frames per run, evenly spaced over the video."""
     repeats: int = 3
     """Timings per render (median)."""
-    train_windows: int = 5
-    """Windows of 10 training iterations (median)."""
     output: Optional[Path] = None
     """Append the table to this Markdown file."""
 
@@ -109,10 +81,8 @@ class RenderSpeed:
                 f"{row['pixels'] / row['model_s']:,.0f}", f"{row['samples_per_ray']:.1f}",
                 f"{row['generic_psnr']:.3f} / {row['model_psnr']:.3f}",
                 f"{row['max_difference']:.2g}, {row['difference_psnr']:.1f}",
-                f"{training_rate(config, self.train_windows):,.0f}",
             ])  # fmt: skip
             print(rows[-1], flush=True)
         header = ["run", "pixels", "render s / frame: generic -> model (speed-up)", "pixels / s (model)",
-                  "samples / ray", "PSNR generic / model (dB)", "model vs generic: max abs diff, PSNR (dB)",
-                  "training rays / s"]  # fmt: skip
+                  "samples / ray", "PSNR generic / model (dB)", "model vs generic: max abs diff, PSNR (dB)"]
         write_report("\n".join(lines + table(header, rows)) + "\n\n", self.output, append=True)
