@@ -1,6 +1,6 @@
 """GPU speed at Neural 3D Video size (21 cameras at 1352 x 1014, synthetic, Technicolor layout): ``gear-nerf``
 against its one-gear twin, trained with nerfstudio's own Trainer without viewer, writers or checkpoints. Per method:
-pre-training, timed gear updates, windows of timed iterations (ms, rays / s, peak GiB), full-frame renders and, with
+pre-training, gear updates, windows of timed iterations (ms, rays / s, peak GiB), full-frame renders and, with
 ``--profile``, profiled iterations. ``benchmarks/results/gpu_speed.md`` says what each measures."""
 
 from __future__ import annotations
@@ -77,15 +77,11 @@ class Run:
         """Seconds of ``function()``, with the device synchronised at both ends."""
         return timed(function, 1, self.synchronize)[0]
 
-    def gear_updates(self, count: int) -> List[Dict[str, float]]:
-        """Run ``count`` gear updates with the pipeline's own updater; their durations and statistics."""
+    def gear_updates(self, count: int) -> None:
+        """Run ``count`` gear updates with the pipeline's own updater."""
         (updater,) = [c.func for c in self.trainer.callbacks if isinstance(c.func, GearUpdater)]
-        results = []
         for _ in range(count):
-            stats: Dict[str, float] = {}
-            seconds = self.timed(lambda: stats.update(updater.update(self.step)))
-            results.append({"seconds": seconds, **stats})
-        return results
+            updater.update(self.step)
 
     def windows(self, count: int, length: int) -> List[float]:
         """Seconds per iteration of ``count`` windows of ``length`` iterations."""
@@ -131,7 +127,8 @@ def measure(method: str, args: "GpuSpeed") -> Dict[str, Any]:
     run = Run(method, args)
     for _ in range(args.pretrain):
         run.iteration()
-    updates = run.gear_updates(args.updates) if run.model.num_gears > 1 else []
+    if run.model.num_gears > 1:
+        run.gear_updates(args.updates)
     for _ in range(args.warmup):
         run.iteration()
     if run.cuda:
@@ -148,7 +145,7 @@ def measure(method: str, args: "GpuSpeed") -> Dict[str, Any]:
         "samples_per_ray": float(torch.stack(run.samples_per_ray).mean()), "train_memory": train_memory,
         "renders": renders, "render_size": (int(camera.width[0]), int(camera.height[0])),
         "render_memory": torch.cuda.max_memory_allocated() if run.cuda else None,
-        "updates": updates, "parameters": sum(p.numel() for p in run.model.parameters()),
+        "parameters": sum(p.numel() for p in run.model.parameters()),
         "profile": run.profile(args.profile) if args.profile and run.cuda else None,
     }  # fmt: skip
     del run
@@ -179,13 +176,6 @@ def markdown(results: List[Dict[str, Any]], args: "GpuSpeed") -> str:
             p = r["profile"]
             lines += ["", f"{r['method']}, {args.profile} training iterations profiled, per iteration: GPU busy "
                       f"{p['busy_ms']:.1f} ms, host {p['host_ms']:.1f} ms, {p['launches']:.0f} kernel launches."]
-        if r["updates"]:
-            lines += ["", f"Gear updates of {r['method']} (seconds each; gear shares of the views' visible surface):"]
-        for k, update in enumerate(r["updates"], start=1):
-            shares = [f"{update[key]:.2f}" for key in sorted(update) if key.startswith("gear_")]
-            area = update.get("upshift_mask_area", float("nan"))
-            lines.append(f"- update {k}: {update['seconds']:.2f} s, upshift mask area {area:.2f}, gears "
-                         f"1-{len(shares)}: {' '.join(shares)}")
     model_frames = f"{args.model_frames} frames (model `num_frames`)" if args.model_frames else "the scene's frames"
     header = ["method", "rays / batch", "base samples n", "samples / ray (mean)",
               "iteration ms: median [quartiles] (range)", "rays / s", "peak train GiB", "render ms / frame (FPS)",
@@ -203,7 +193,7 @@ def markdown(results: List[Dict[str, Any]], args: "GpuSpeed") -> str:
 
 @dataclasses.dataclass
 class GpuSpeed:
-    """Train both methods at N3D size and time iterations, gear updates and renders; write ``gpu_speed.md``."""
+    """Train both methods at N3D size and time iterations and renders; write ``gpu_speed.md``."""
 
     methods: Tuple[Literal["gear-nerf", "gear-nerf-one-gear"], ...] = METHODS
     device: Literal["cuda", "cpu"] = "cuda"
