@@ -1,8 +1,7 @@
-"""Speed / accuracy: Gear-NeRF against plain K-Planes (``METHODS``), on real captures
-(``SCENES``), with seeds; held-out PSNR / SSIM / LPIPS, moving-region PSNR and gear shares
-(``gear_nerfstudio.model.moving_region``, as ns-eval), render FPS, samples per ray, parameters and peak RSS at every
-checkpoint; scored at equal iterations and at equal training time (CPU seconds of a single-threaded training process
-on the CPU, wall-clock on CUDA). Writes ``<output>/speed_accuracy.md``, ``.png`` and ``records.json``
+"""Speed / accuracy: Gear-NeRF against plain K-Planes (``METHODS``), on real captures (``SCENES``), with seeds;
+held-out PSNR / SSIM / LPIPS, moving-region PSNR and gear shares (``gear_nerfstudio.model.moving_region``, as ns-eval)
+at every checkpoint; scored at equal iterations and at equal training time (CPU seconds of a single-threaded training
+process on the CPU, wall-clock on CUDA). Writes ``<output>/speed_accuracy.md``, ``.png`` and ``records.json``
 (``benchmarks/results/speed_accuracy.md`` says how it was run)."""
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 
-from benchmarks.common import REAL, page, table, timed, timed_train, write_report
+from benchmarks.common import REAL, page, table, timed_train, write_report
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
 
 Clock = Literal["seconds", "cpu_seconds"]
@@ -190,7 +189,7 @@ class SpeedAccuracy:
         shutil.rmtree(run_dir, ignore_errors=True)
         run_dir.mkdir(parents=True)
         print(f"[speed_accuracy] {scene.name} / {method} / {seed}: ns-train {shlex.join(command)}", flush=True)
-        timing, usage = timed_train(command, run_dir / "benchmark_timing.json", run_dir / "train.log")
+        timing, _ = timed_train(command, run_dir / "benchmark_timing.json", run_dir / "train.log")
         record = {
             "command": command,
             "scene": scene.name,
@@ -199,7 +198,6 @@ class SpeedAccuracy:
             "iterations": self.preset_iterations(),
             "train_seconds": timing["train_seconds"],
             "train_cpu_seconds": timing["train_cpu_seconds"],
-            "peak_rss_mib": usage.ru_maxrss / 1024.0,  # Linux: KiB
             "peak_cuda_mib": timing.get("peak_cuda_mib"),
             "checkpoints": evaluate_checkpoints(run_dir / "config.yml", timing["checkpoints"], self.eval_frames),
         }
@@ -292,13 +290,9 @@ class Report:
                     *quality(finals), cell(finals, "accumulation", 3),
                     cell(finals, "near_layer", 0, 100, " %"), cell(finals, "gear_updates", 0),
                     cell(finals, "moving_at_gear_2", 0, 100, " %"), cell(finals, "static_at_gear_1", 0, 100, " %"),
-                    cell(finals, "samples_per_ray", 1), cell(finals, "fps"),
-                    f"{finals[0]['parameters']:,} ({finals[0]['parameters_in_use']:,})", cell(runs, "peak_rss_mib", 0),
                 ])  # fmt: skip
         header = ["scene", "method", "n", CLOCKS["seconds"], CLOCKS["cpu_seconds"], "ms / iteration", *QUALITY,
-                  "accumulation", "near layer", "gear updates",
-                  "moving px at gear >= 2", "static px at gear 1", "samples / ray", "render FPS", "parameters (in use)",
-                  "peak RSS (MiB)"]  # fmt: skip
+                  "accumulation", "near layer", "gear updates", "moving px at gear >= 2", "static px at gear 1"]
         return table(header, rows)
 
     def gain(self, scene: str) -> str:
@@ -363,13 +357,12 @@ def evaluate_checkpoints(
     checkpoints: List[Dict[str, float]],
     eval_frames: int,
 ) -> List[Dict[str, Any]]:
-    """Held-out metrics (PSNR, SSIM, LPIPS when local, accumulation, near layer), gear maps, render speed, samples per
-    ray and parameters of each checkpoint of a run.
+    """Held-out metrics (PSNR, SSIM, LPIPS when local, accumulation, near layer) and gear maps of each checkpoint of
+    a run.
 
     The pipeline is set up once (nerfstudio's ``eval_setup``, test split = held-out camera, SAM features off:
     the metrics do not use them); each checkpoint is then loaded into it with ``eval_load_checkpoint``.
     """
-    import torch
     from nerfstudio.utils.eval_utils import eval_load_checkpoint, eval_setup
 
     from gear_nerfstudio.model.metrics import MIN_MSE
@@ -383,41 +376,26 @@ def evaluate_checkpoints(
     model = pipeline.model
     dataset = pipeline.datamanager.eval_dataset
     frames = sorted({int(round(i)) for i in np.linspace(0, len(dataset) - 1, min(eval_frames, len(dataset)))})
-    cuda = torch.device(pipeline.device).type == "cuda"
-
-    def render(index: int) -> Dict[str, Any]:
-        with model.rendering("num_samples"):
-            return model.get_outputs_for_camera(dataset.cameras[index : index + 1].to(pipeline.device))
-
-    render(frames[0])  # warm-up, untimed
     results = []
     for entry in sorted(checkpoints, key=lambda e: e["step"]):
         config.load_step = int(entry["step"])
         eval_load_checkpoint(config, pipeline)
         metrics: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": [], "accumulation": [], "near_layer": []}
-        render_seconds, samples, pixels = 0.0, 0.0, 0
         sums = {key: 0.0 for key in SUMS}
         for index in frames:
-            seconds, outputs = timed(lambda: render(index), 1, torch.cuda.synchronize if cuda else lambda: None)
-            render_seconds += seconds
+            outputs = model.get_outputs_for_camera(dataset.cameras[index : index + 1].to(pipeline.device))
             image_metrics, _ = model.get_image_metrics_and_images(outputs, dataset[index])
             for name in metrics:
                 metrics[name] += [float(image_metrics[name])] if name in image_metrics else []
             for name in SUMS:
                 sums[name] += image_metrics[name]
-            samples += float(outputs["num_samples"].sum())
-            pixels += outputs["num_samples"].numel()
-        total = sum(p.numel() for p in model.parameters())
-        unused = sum(p.numel() for p in model.field.parameters()) - model.field.parameters_in_use()
         results.append({
             "step": int(entry["step"]), "seconds": float(entry["seconds"]), "cpu_seconds": float(entry["cpu_seconds"]),
             **{name: float(np.mean(values)) if values else None for name, values in metrics.items()},
-            "fps": len(frames) / render_seconds, "samples_per_ray": samples / pixels,
             **dict.fromkeys(("psnr_moving", "psnr_static", "moving_at_gear_2", "static_at_gear_1")),
             **region_scores(sums, MIN_MSE),
             "gear_updates": int(pipeline.gear_update_state.num_updates),
-            "parameters": int(total), "parameters_in_use": int(total - unused),
         })  # fmt: skip
         print(f"[speed_accuracy]   step {entry['step']:>6}  {entry['seconds']:8.1f} s  PSNR {results[-1]['psnr']:.2f}"
-              f"  samples/ray {results[-1]['samples_per_ray']:.1f}  updates {results[-1]['gear_updates']}", flush=True)
+              f"  updates {results[-1]['gear_updates']}", flush=True)
     return results
