@@ -28,7 +28,7 @@ def people_mask(masks: Path, camera: str, number: int, shape: Tuple[int, int]) -
 @torch.no_grad()
 def frame_gear_counts(
     pipeline: Pipeline, masks: Path, cameras: Sequence[str], scale: float = 0.25, held_out: bool = False
-) -> Iterator[Tuple[str, int, np.ndarray]]:
+) -> Iterator[np.ndarray]:
     """Per camera and frame (numbered within the loaded window): ``gear_mask_counts`` of its gear map against the
     people's mask."""
     datamanager = pipeline.datamanager
@@ -47,7 +47,7 @@ def frame_gear_counts(
             levels = model.visible_gear_levels(camera).cpu().numpy()
             frame = int(frame_ids[index])
             people = people_mask(masks, name, int(numbers[frame]), levels.shape)
-            yield name, frame, gear_mask_counts(levels, people)
+            yield gear_mask_counts(levels, people)
 
 
 def shares(counts: np.ndarray) -> Tuple[float, float]:
@@ -57,7 +57,7 @@ def shares(counts: np.ndarray) -> Tuple[float, float]:
 
 @dataclasses.dataclass
 class GearMasks:
-    """Print the two shares of one run (with ``--per-frame``, also those of every camera and frame)."""
+    """Print the two shares of one run."""
 
     config: tyro.conf.Positional[Path]
     """config.yml of the trained run."""
@@ -67,7 +67,6 @@ class GearMasks:
     """Training cameras to score."""
     held_out: bool = False
     """Score the run's held-out camera(s) instead."""
-    per_frame: bool = False
 
     def main(self) -> None:
         _, pipeline, _, _ = eval_setup(self.config, test_mode="test")
@@ -75,9 +74,6 @@ class GearMasks:
         if self.held_out:
             metadata = pipeline.datamanager.eval_dataset.metadata
             cameras = tuple(sorted({metadata["camera_names"][int(i)] for i in metadata["camera_ids"]}))
-        frames = frame_gear_counts(pipeline, self.masks, cameras, held_out=self.held_out)
-        rows = [(f"{camera} frame {frame}", counts) for camera, frame, counts in frames]
-        total = (self.config.parent.name, np.sum([counts for _, counts in rows], axis=0))
-        for name, counts in (rows if self.per_frame else []) + [total]:
-            people, static = shares(counts)
-            print(f"{name}: people's pixels at gear >= 2: {people:.3f}; other pixels at gear 1: {static:.3f}")
+        people, static = shares(sum(frame_gear_counts(pipeline, self.masks, cameras, held_out=self.held_out)))
+        print(f"{self.config.parent.name}: people's pixels at gear >= 2: {people:.3f}; other pixels at gear 1: "
+              f"{static:.3f}")

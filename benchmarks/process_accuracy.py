@@ -22,11 +22,11 @@ from benchmarks.common import BIN, REAL, REPO, fill_page, machine_description, p
 CAPTURES = ("panoptic_basketball_video", "n3d_flame_steak_frame0")
 
 
-def run_capture(folder: Path, work: Path, cameras: int) -> Tuple[Dict[str, np.ndarray], float, Path]:
+def run_capture(folder: Path, work: Path) -> Tuple[Dict[str, np.ndarray], float, Path]:
     """Copy the videos only, run ns-gear-process, compare; (errors, seconds, output folder)."""
     from gear_nerfstudio.process.accuracy import pose_errors
 
-    videos = sorted(folder.glob("cam*.mp4"))[:cameras]
+    videos = sorted(folder.glob("cam*.mp4"))
     stripped = work / f"{folder.name}-videos"
     stripped.mkdir()
     for video in videos:
@@ -48,8 +48,6 @@ class ProcessAccuracy:
     """Process each capture's videos and compare the cameras with its own calibration."""
 
     captures: Tuple[str, ...] = CAPTURES
-    cameras: int = 100
-    """Use the first N cameras of each capture."""
     output: Path = REPO / "benchmarks" / "results" / "process_accuracy.md"
 
     def main(self) -> None:
@@ -58,7 +56,7 @@ class ProcessAccuracy:
         rows, details = [], []
         with tempfile.TemporaryDirectory() as work:
             for key in self.captures:
-                errors, seconds, output = run_capture(REAL / key, Path(work), self.cameras)
+                errors, seconds, output = run_capture(REAL / key, Path(work))
                 picture = self.output.with_name(f"process_accuracy_{key}.png")
                 shutil.copy(output / "rig.png", picture)
                 c, r = errors["centre_pct"], errors["rotation_deg"]

@@ -33,7 +33,6 @@ class Tracking:
     height: int = 48
     frames: int = 6
     cameras: int = 8
-    motion: str = "mixed"
     config: Optional[Path] = None
     """config.yml of a run already trained on `--scene` (skips writing the scene and training)."""
     scene: Optional[Path] = None
@@ -53,7 +52,7 @@ class Tracking:
         else:
             scene = self.output / "scene"
             write_synthetic_scene(scene, SyntheticSpec(dataset="n3d", width=self.width, height=self.height,
-                                                       frames=self.frames, cameras=self.cameras, motion=self.motion))
+                                                       frames=self.frames, cameras=self.cameras))
             config = self.train(scene)
         trained = time.time()
         click_time = self.click_frame / (self.frames - 1)
