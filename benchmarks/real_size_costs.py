@@ -14,7 +14,6 @@ import shlex
 import shutil
 import statistics
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
@@ -85,14 +84,12 @@ def measure_frames(dataset: Dataset, content: str, images: Sequence[Image.Image]
     if dataset.files == "video":
         video = folder / "source.mp4"
         write_video(video, big, fps=30)
-        started = time.perf_counter()
         cache_video_frames([video], list(range(len(big))), [dataset.train_size], frame_cache)
         in_place = False
     else:
         sources = [folder / f"frame{i:02d}.png" for i in range(len(big))]
         for rgb, path in zip(big, sources):
             Image.fromarray(rgb).save(path)
-        started = time.perf_counter()
         cached = cache_image_frames([[p] for p in sources], [0], [dataset.train_size] * len(big), frame_cache)
         in_place = [row[0] for row in cached] == sources
     return {
@@ -101,7 +98,6 @@ def measure_frames(dataset: Dataset, content: str, images: Sequence[Image.Image]
         "frames_measured": len(big),
         "in_place": in_place,
         "frame_cache_bytes_per_frame": disk_bytes(frame_cache) / len(big),
-        "frame_cache_seconds_per_frame": (time.perf_counter() - started) / len(big),
     }
 
 
@@ -118,9 +114,7 @@ def measure_sam(frames: Sequence[Path], folder: Path, count: int) -> Dict[str, A
 
     shutil.rmtree(folder, ignore_errors=True)
     encoded = list(frames[:count])
-    started = time.perf_counter()
     SamFeatureCache(BuiltinSamConfig().setup(), folder, encoded).precompute()
-    seconds = (time.perf_counter() - started) / len(encoded)
     files = [p for p in folder.rglob("*") if p.is_file()]
     if len(files) != len(encoded):
         raise RuntimeError(f"{folder}: expected {len(encoded)} cache files, found {len(files)}")
@@ -130,7 +124,6 @@ def measure_sam(frames: Sequence[Path], folder: Path, count: int) -> Dict[str, A
         "sam_format": sam_format,
         "sam_files_measured": len(files),
         "sam_bytes_per_file": sum(p.lstat().st_blocks * 512 for p in files) / len(files),
-        "sam_seconds_per_image": seconds,
     }
 
 
@@ -234,17 +227,6 @@ def disk_table(records: List[Dict[str, Any]]) -> List[str]:
                   "SAM cache / scene (computed)", "both caches / scene (computed)"], rows)  # fmt: skip
 
 
-def setup_time_table(records: List[Dict[str, Any]]) -> List[str]:
-    rows = []
-    for r in records:
-        d = DATASETS[r["dataset"]]
-        total = (r["frame_cache_seconds_per_frame"] + r["sam_seconds_per_image"]) * d.cameras * d.frames
-        rows.append([d.name, r["content"], f"`{r['sam_format']}`", f"{r['frame_cache_seconds_per_frame']:.2f}",
-                     f"{r['sam_seconds_per_image']:.2f}", f"{total / 60:.0f} min"])  # fmt: skip
-    return table(["dataset", "content", "SAM cache format", "frame cache s / frame **(measured)**",
-                  "SAM encode s / image **(measured)**", "frame cache + SAM encode, whole scene (computed)"], rows)
-
-
 def train_table(records: List[Dict[str, Any]]) -> List[str]:
     rows = []
     for r in records:
@@ -257,8 +239,8 @@ def train_table(records: List[Dict[str, Any]]) -> List[str]:
         ])  # fmt: skip
     header = ["training size (dataset)", "method", "frames (images)", "peak RSS **(measured)**",
               "s / iteration, median **(measured)**", "parameters at these frames **(measured)**",
-              "parameters at the real frame count "
-              "**(measured, model built)**", "training memory added at the real frame count, at most (computed)"]
+              "parameters at the real frame count **(measured, model built)**",
+              "training memory added at the real frame count, at most (computed)"]
     return table(header, rows)
 
 
@@ -267,7 +249,7 @@ def parts(records: Dict[str, Any]) -> Dict[str, str]:
     runs = [f"- `{run['command']}` (part: {', '.join(run['parts'])}), {run['date']}; 1-minute load average "
             f"{run['load']}; {run['machine']}" for run in records["invocations"]]  # fmt: skip
     return {"runs": "\n".join(runs), "disk": "\n".join(disk_table(records["disk"])),
-            "setup": "\n".join(setup_time_table(records["disk"])), "train": "\n".join(train_table(records["train"]))}
+            "train": "\n".join(train_table(records["train"]))}
 
 
 @dataclasses.dataclass
