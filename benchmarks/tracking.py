@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -43,7 +42,6 @@ class Tracking:
     """Object ids to click, one at a time (mixed scene: 1 static, 2 slow, 3 fast sphere)."""
 
     def main(self) -> None:
-        started = time.time()
         if self.config is not None:
             if self.scene is None:
                 raise SystemExit("--config needs --scene, the synthetic scene it was trained on")
@@ -54,7 +52,6 @@ class Tracking:
             write_synthetic_scene(scene, SyntheticSpec(dataset="n3d", width=self.width, height=self.height,
                                                        frames=self.frames, cameras=self.cameras))
             config = self.train(scene)
-        trained = time.time()
         click_time = self.click_frame / (self.frames - 1)
         rows = []
         for object_id in self.objects:
@@ -69,10 +66,7 @@ class Tracking:
             f"every frame time ({self.frames}).",
             "", *table(["object", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
         ]  # fmt: skip
-        timing = (f"Training {trained - started:.0f} s (0 when --config is given), tracking ({len(self.objects)} "
-                  f"ns-gear-track runs, each: model load, masks, overlay video) {time.time() - trained:.0f} s, wall "
-                  "clock.")
-        write_report(page("Tracking on a synthetic scene", [*lines, "", timing]), self.output / "tracking.md")
+        write_report(page("Tracking on a synthetic scene", lines), self.output / "tracking.md")
 
     def train(self, scene: Path) -> Path:
         data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache")]

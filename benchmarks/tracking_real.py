@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import subprocess
-import time
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Tuple
 
@@ -77,13 +76,11 @@ class TrackingReal:
     """Where `ns-train` trains (`--machine.device-type`); tracking uses the GPU when there is one."""
 
     def main(self) -> None:
-        started = time.time()
         self.output.mkdir(parents=True, exist_ok=True)
         masks = self.capture.parent / f"{self.capture.name}_masks"
         frames = len(list((masks / self.held_out).glob("*.png")))
         frames = frames if self.frame_count is None else min(frames, self.frame_count)
         config = self.config or self.train()
-        trained = time.time()
         click_time = self.click_frame / (frames - 1)
         clicked_people = people(masks, self.click_camera, self.click_frame)
         held_out = [
@@ -109,9 +106,7 @@ class TrackingReal:
             f"{self.click_frame}), one positive click per person at the mask pixel deepest inside them; target: "
             f"held-out camera {self.held_out} at every frame time ({frames}), embedding propagation.",
             "", *table(["person", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
-            *([""] if refusals else []), *refusals, "",
-            f"Training {trained - started:.0f} s (0 when --config is given), tracking ({len(clicked_people)} "
-            f"ns-gear-track runs) {time.time() - trained:.0f} s, wall clock.",
+            *([""] if refusals else []), *refusals,
         ]  # fmt: skip
         write_report(page("Tracking on a real capture", lines), self.output / "tracking_real.md")
 
