@@ -1,8 +1,6 @@
 """How close ns-gear-process's calibration comes to a capture's own: the videos alone are processed and the recovered
-cameras compared after a similarity alignment (``gear_nerfstudio.process.accuracy.pose_errors``): centre error in %
-of the rig's size, rotation error in degrees, per camera, beside the cameras the self-check named as doubtful. Writes
-the table into ``benchmarks/results/process_accuracy.md`` (between its ``<!-- run -->`` markers) and each capture's
-rig plot."""
+cameras compared after a similarity alignment (``gear_nerfstudio.process.accuracy.pose_errors``), beside the cameras
+the self-check named as doubtful; the table goes between the ``<!-- run -->`` markers of ``process_accuracy.md``."""
 
 from __future__ import annotations
 
@@ -53,12 +51,10 @@ class ProcessAccuracy:
     def main(self) -> None:
         import pycolmap
 
-        rows, details = [], []
+        rows = []
         with tempfile.TemporaryDirectory() as work:
             for key in self.captures:
                 errors, seconds, output = run_capture(REAL / key, Path(work))
-                picture = self.output.with_name(f"process_accuracy_{key}.png")
-                shutil.copy(output / "rig.png", picture)
                 c, r = errors["centre_pct"], errors["rotation_deg"]
                 frames = json.loads((output / "transforms.json").read_text())["frames"]
                 doubtful = [i for i, frame in enumerate(frames) if frame["self_check"]["doubtful"]]
@@ -66,11 +62,9 @@ class ProcessAccuracy:
                 rows.append([key, len(c), *(f"{f(x):.2f}" for x in (c, r) for f in (np.mean, np.median, np.max)),
                              f"{int(((c <= 2) & (r <= 1)).sum())} / {len(c)}", names(doubtful), names(missed),
                              f"{seconds:.0f} s"])  # fmt: skip
-                details.append(f"- {key}: per camera (cam00, cam01, ...), centre % {', '.join(f'{x:.2f}' for x in c)}; "
-                               f"rotation deg {', '.join(f'{x:.2f}' for x in r)}. Rig: ![{key}]({picture.name})")
         header = ["capture", "cameras", "centre % mean", "median", "max", "rotation deg mean", "median", "max",
                   "cameras within both", "named doubtful", "outside both, not named", "time"]  # fmt: skip
         machine = f"{machine_description()}; pycolmap {pycolmap.__version__}"
-        run = [*table(header, rows), "", *details, "", *provenance(machine)]
+        run = [*table(header, rows), "", *provenance(machine)]
         fill_page(self.output, {"run": "\n".join(run)})
         print("\n".join(run))
