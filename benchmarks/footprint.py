@@ -1,11 +1,9 @@
-"""What a scene costs: parameters (all, and in use: ``GearField.parameters_in_use``), gear levels used, checkpoint
-size and peak RSS of the training process, for gear-nerf-small and the one-gear preset on a static and a mixed
-synthetic scene, and gear-nerf-small on a long low-resolution video. Writes ``<output>/footprint.md``."""
+"""What a scene costs: parameters (all, and in use), gear levels used, checkpoint size and peak RSS of training, on
+synthetic scenes (static, mixed, a long low-resolution video). Writes ``<output>/footprint.md``."""
 
 from __future__ import annotations
 
 import dataclasses
-import time
 from pathlib import Path
 from typing import List, Tuple
 
@@ -44,15 +42,15 @@ class Footprint:
     def main(self) -> None:
         rows = []
         for run in self.runs():
-            total, in_use, gears, checkpoint, rss, seconds = self.measure(run)
+            total, in_use, gears, checkpoint, rss = self.measure(run)
             rows.append([run.name, run.method, run.iterations, total, in_use, gears, f"{checkpoint / 2**20:.1f}",
-                         f"{rss / 2**20:.0f}", f"{seconds:.0f}"])  # fmt: skip
+                         f"{rss / 2**20:.0f}"])  # fmt: skip
             print(rows[-1], flush=True)
         header = ["scene", "method", "iterations", "parameters", "in use", "gears used", "checkpoint MiB",
-                  "peak RSS MiB", "training s"]  # fmt: skip
+                  "peak RSS MiB"]
         write_report(page("What a scene costs", table(header, rows)), self.output / "footprint.md")
 
-    def measure(self, run: Run) -> Tuple[int, int, str, int, int, float]:
+    def measure(self, run: Run) -> Tuple[int, int, str, int, int]:
         key = f"{run.spec.motion}-{run.spec.frames}x{run.spec.cameras}"
         scene = self.output / f"scene-{key}"
         if not (scene / "poses_bounds.npy").exists():
@@ -67,9 +65,7 @@ class Footprint:
             "--steps-per-eval-batch", "1000000", "neural-3d-video-data", "--data", str(scene),
             "--cache-dir", str(self.output / "cache"),
         ]
-        start = time.perf_counter()
         usage = run_measured(command, runs / f"{key}-{run.method}.log")
-        seconds = time.perf_counter() - start
         folder = runs / key / run.method / "run"
         checkpoint = sorted((folder / "nerfstudio_models").glob("step-*.ckpt"))[-1]
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)["pipeline"]
@@ -82,5 +78,5 @@ class Footprint:
         total = sum(v.numel() for k, v in field_state.items() if v.is_floating_point() and k != "aabb")
         gears = ",".join(str(g + 1) for g in range(len(used)) if bool(used[g]))
         # ru_maxrss is in KiB on Linux.
-        return total, total - unused_planes, gears, checkpoint.stat().st_size, usage.ru_maxrss * 1024, seconds
+        return total, total - unused_planes, gears, checkpoint.stat().st_size, usage.ru_maxrss * 1024
 

@@ -70,7 +70,7 @@ class Tracking:
 
     def train(self, scene: Path) -> Path:
         data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache")]
-        return train_preset(self.output, self.iterations, self.seed, "cpu", data)
+        return train_preset(self.output, self.iterations, self.seed, data)
 
     def click_pixel(self, scene: Path, object_id: int) -> Tuple[float, float]:
         """The pixel centre deepest inside the object's ground-truth mask at the clicked frame."""
@@ -80,15 +80,15 @@ class Tracking:
         return deepest_pixel(ids == object_id)
 
 
-def train_preset(output: Path, iterations: int, seed: int, device: str, options: List[str]) -> Path:
-    """Train gear-nerf-small with ns-train (``options`` after its own, the dataparser's last) into
+def train_preset(output: Path, iterations: int, seed: int, options: List[str]) -> Path:
+    """Train gear-nerf-small on the CPU with ns-train (``options`` after its own, the dataparser's last) into
     ``<output>/runs/tracking/gear-nerf-small/run``, its log in ``<output>/runs/train.log``; its config.yml."""
     method = "gear-nerf-small"
     runs = output / "runs"
     runs.mkdir(parents=True, exist_ok=True)
     ns(
         "ns-train", method, "--output-dir", str(runs), "--experiment-name", "tracking", "--timestamp", "run",
-        "--max-num-iterations", str(iterations), *schedule_options(iterations), "--machine.device-type", device,
+        "--max-num-iterations", str(iterations), *schedule_options(iterations), "--machine.device-type", "cpu",
         "--machine.seed", str(seed), "--vis", "tensorboard", *options, log=runs / "train.log",
     )  # fmt: skip
     return runs / "tracking" / method / "run" / "config.yml"

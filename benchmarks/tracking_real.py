@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 from PIL import Image
@@ -72,8 +72,6 @@ class TrackingReal:
     size."""
     frame_count: Optional[int] = None
     """Train on the first this many frames (the dataparser's --frame-count); all by default."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Where `ns-train` trains (`--machine.device-type`); tracking uses the GPU when there is one."""
 
     def main(self) -> None:
         self.output.mkdir(parents=True, exist_ok=True)
@@ -116,7 +114,7 @@ class TrackingReal:
             *dataparser(self.capture, self.held_out, self.downscale, self.frame_count), "--cache-dir",
             str(self.output / "frames"),
         ]  # fmt: skip
-        return train_preset(self.output, self.iterations, self.seed, self.device, options)
+        return train_preset(self.output, self.iterations, self.seed, options)
 
 
 def refusal(log: Path) -> str:
