@@ -63,12 +63,8 @@ def timed_train(arguments: Sequence[str], timing: Path, log: Path):
 
 
 def train_child(timing_path: Path, arguments: List[str]) -> None:
-    """Child process: ns-train with hooks on ``Trainer.train``, ``train_iteration``, ``save_checkpoint``.
-
-    Writes to ``timing_path``: per checkpoint its step and the training time before it in wall-clock (``seconds``)
-    and CPU seconds of the process, both from the start of ``Trainer.train`` minus earlier checkpoint writes; the
-    totals; each iteration's seconds; on CUDA the peak allocated MiB.
-    """
+    """Child process: ns-train with hooks that write to ``timing_path`` each checkpoint's wall-clock and CPU seconds of
+    training (checkpoint writes left out), the totals, each iteration's seconds and on CUDA the peak allocated MiB."""
     import torch
     from nerfstudio.engine.trainer import Trainer
     from nerfstudio.scripts.train import entrypoint

@@ -1,7 +1,5 @@
-"""Where a trained run put its gears against the people's masks: at every frame of some training cameras (or the
-held-out one with ``--held-out``), the share of the people's pixels at gear >= 2 and of the other pixels at gear 1
-(Eq 5 at the surface each pixel sees, ``GearNeRFModel.visible_gear_levels``), at a quarter of the cameras' size.
-Masks are ``<camera>/<frame:05d>.png``, numbered within the loaded window."""
+"""Where a trained run put its gears against the people's masks (``GearNeRFModel.visible_gear_levels`` at a quarter
+of the cameras' size): the share of the people's pixels at gear >= 2 and of the other pixels at gear 1."""
 
 from __future__ import annotations
 

@@ -1,7 +1,5 @@
-"""GPU speed at Neural 3D Video size (21 cameras at 1352 x 1014, synthetic, Technicolor layout): ``gear-nerf``
-against its one-gear twin, trained with nerfstudio's own Trainer without viewer, writers or checkpoints. Per method:
-pre-training, gear updates, windows of timed iterations (ms, rays / s, peak GiB), full-frame renders and, with
-``--profile``, profiled iterations. ``benchmarks/results/gpu_speed.md`` says what each measures."""
+"""GPU speed at Neural 3D Video size (21 cameras at 1352 x 1014, synthetic): ``gear-nerf`` against its one-gear twin in
+nerfstudio's own Trainer; ``benchmarks/results/gpu_speed.md`` says what each column measures."""
 
 from __future__ import annotations
 

@@ -1,10 +1,5 @@
 """The field's plane lookups, full-frame renders and training iterations with the torch path and the Warp kernel
-(``--pipeline.model.plane-kernel``) side by side in one process on one checkpoint, interleaved; times are this
-process's CPU seconds (``time.process_time``, best of ``--repeats``), which other processes on a shared machine
-change less than wall time.
-
-    OMP_NUM_THREADS=1 .venv/bin/python -m benchmarks plane-kernel <run>/config.yml --repeats 5
-"""
+side by side on one checkpoint, interleaved; times are this process's CPU seconds, best of ``--repeats``."""
 
 from __future__ import annotations
 

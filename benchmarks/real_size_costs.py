@@ -1,7 +1,5 @@
-"""What a scene costs at the datasets' real sizes (``DATASETS``), on real content upscaled to them: disk of the frame
-and SAM caches (``--only disk``), and peak host memory and seconds per iteration of short ns-train runs on the CPU
-(``--only train``). Records accumulate in ``<output>/records.json``; every run rewrites the
-tables from them (``benchmarks/results/real_size_costs.md`` says what each column measures)."""
+"""What a scene costs at the datasets' real sizes, on real content upscaled to them: the caches' disk, and peak RSS and
+seconds per iteration of short ns-train runs; records accumulate in ``<output>/records.json``."""
 
 from __future__ import annotations
 
@@ -72,7 +70,7 @@ def content_folder(work: Path, dataset: Dataset, content: str) -> Path:
 
 
 def measure_frames(dataset: Dataset, content: str, images: Sequence[Image.Image], work: Path) -> Dict[str, Any]:
-    """The frame cache of one dataset's real size on upscaled real content (see the module docstring)."""
+    """The frame cache of one dataset's real size on upscaled real content (the dataset's files, then its cache)."""
     from gear_nerfstudio.data.frame_cache import cache_image_frames, cache_video_frames
     from gear_nerfstudio.tools.video import write_video
 

@@ -1,6 +1,5 @@
-"""Render speed of trained runs: full-image seconds per frame, pixels / s and samples per ray of the model's render
-path against nerfstudio's generic one (``Model.get_outputs_for_camera_ray_bundle``) on the same checkpoint, and
-their difference and PSNR against the held-out frames."""
+"""Render speed of trained runs: the model's render path against nerfstudio's generic one on the same checkpoint
+(seconds per frame, pixels / s, samples per ray), and their difference and PSNR against the held-out frames."""
 
 from __future__ import annotations
 

@@ -1,7 +1,5 @@
-"""Free-viewpoint tracking (Sec 4.5) from one click on a synthetic scene, against ground-truth object masks: trains a
-preset (or takes ``--config`` and its ``--scene``), clicks each object in a training camera at one time and runs
-``ns-gear-track`` (embedding propagation) to the held-out cam00 at every frame; mIoU / Acc. at the clicked time,
-t-mIoU / t-Acc. at the others (the paper's table). Writes ``<output>/tracking.md``."""
+"""Free-viewpoint tracking (Sec 4.5) from one click per object of a synthetic scene, with ``ns-gear-track`` into the
+held-out cam00 at every frame: mIoU / Acc. at the clicked time, t-mIoU / t-Acc. at the others (the paper's table)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,5 @@
-"""Free-viewpoint tracking (Sec 4.5) on real video (CMU Panoptic basketball, scored against its foreground masks;
-a mask component of at least PERSON_SHARE of the image is one person) through the rendered 4D embedding: trains a
-preset (or takes ``--config``), clicks each person in ``--click-camera`` at ``--click-frame`` and runs
-``ns-gear-track`` into the held-out camera at every frame; mIoU / Acc. and t-mIoU / t-Acc. Writes
-``<output>/tracking_real.md``."""
+"""Free-viewpoint tracking (Sec 4.5) on real video (CMU Panoptic basketball): one click per person of the foreground
+masks, ``ns-gear-track`` into the held-out camera at every frame, scored against its masks (mIoU, t-mIoU)."""
 
 from __future__ import annotations
 
