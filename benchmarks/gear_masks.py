@@ -48,11 +48,6 @@ def frame_gear_counts(
             yield gear_mask_counts(levels, people)
 
 
-def shares(counts: np.ndarray) -> Tuple[float, float]:
-    """People's pixels at gear >= 2 and other pixels at gear 1, from summed ``gear_mask_counts``."""
-    return counts[0] / max(counts[1], 1), counts[2] / max(counts[3], 1)
-
-
 @dataclasses.dataclass
 class GearMasks:
     """Print the two shares of one run."""
@@ -72,6 +67,7 @@ class GearMasks:
         if self.held_out:
             metadata = pipeline.datamanager.eval_dataset.metadata
             cameras = tuple(sorted({metadata["camera_names"][int(i)] for i in metadata["camera_ids"]}))
-        people, static = shares(sum(frame_gear_counts(pipeline, self.masks, cameras, held_out=self.held_out)))
+        counts = sum(frame_gear_counts(pipeline, self.masks, cameras, held_out=self.held_out))
+        people, static = counts[0] / max(counts[1], 1), counts[2] / max(counts[3], 1)
         print(f"{self.config.parent.name}: people's pixels at gear >= 2: {people:.3f}; other pixels at gear 1: "
               f"{static:.3f}")

@@ -42,8 +42,7 @@ class Run:
             data=args.scene, held_out_camera=HELD_OUT_CAMERA, cache_dir=args.output / "frames"
         )
         datamanager.sam_cache_dir = args.output / "sam"
-        if args.model_frames:
-            config.pipeline.model.num_frames = args.model_frames
+        config.pipeline.model.num_frames = args.model_frames
         if method == "gear-nerf-one-gear":
             config.pipeline.model.num_gears = 1
         self.method = method
@@ -174,17 +173,16 @@ def markdown(results: List[Dict[str, Any]], args: "GpuSpeed") -> str:
             p = r["profile"]
             lines += ["", f"{r['method']}, {args.profile} training iterations profiled, per iteration: GPU busy "
                       f"{p['busy_ms']:.1f} ms, host {p['host_ms']:.1f} ms, {p['launches']:.0f} kernel launches."]
-    model_frames = f"{args.model_frames} frames (model `num_frames`)" if args.model_frames else "the scene's frames"
     header = ["method", "rays / batch", "base samples n", "samples / ray (mean)",
               "iteration ms: median [quartiles] (range)", "rays / s", "peak train GiB", "render ms / frame (FPS)",
               "peak render GiB", "parameters"]  # fmt: skip
     width, height = results[0]["render_size"]
     return page("GPU speed at Neural 3D Video size: gear-nerf and the one-gear baseline", [
         f"Scene: synthetic (mixed motion), Technicolor layout, {args.rows} x {args.cols} cameras at {args.width} x "
-        f"{args.height}, {args.frames} frames, held-out camera {HELD_OUT_CAMERA}; planes sized for {model_frames}. Per "
-        f"method: {args.pretrain} training iterations, {args.updates} gear updates (gear-nerf), {args.warmup} warm-up "
-        f"iterations, {args.windows} timed windows of {args.window} iterations. Renders: one full {width} x {height} "
-        f"frame, median of {args.renders}. Seed {args.seed}.",
+        f"{args.height}, {args.frames} frames, held-out camera {HELD_OUT_CAMERA}; planes sized for {args.model_frames} "
+        f"frames. Per method: {args.pretrain} training iterations, {args.updates} gear updates (gear-nerf), "
+        f"{args.warmup} warm-up iterations, {args.windows} timed windows of {args.window} iterations. Renders: one "
+        f"full {width} x {height} frame, median of {args.renders}. Seed {args.seed}.",
         "", *table(header, rows), *lines,
     ], args.device)  # fmt: skip
 
@@ -203,7 +201,7 @@ class GpuSpeed:
     cols: int = 7
     frames: int = 6
     model_frames: int = 300
-    """The model's num_frames (planes' rows); 0: the scene's."""
+    """The model's num_frames (planes' rows)."""
     pretrain: int = 300
     updates: int = 2
     warmup: int = 20

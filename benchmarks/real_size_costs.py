@@ -93,7 +93,6 @@ def measure_frames(dataset: Dataset, content: str, images: Sequence[Image.Image]
     return {
         "dataset": dataset.name,
         "content": content,
-        "frames_measured": len(big),
         "in_place": in_place,
         "frame_cache_bytes_per_frame": disk_bytes(frame_cache) / len(big),
     }
@@ -120,7 +119,6 @@ def measure_sam(frames: Sequence[Path], folder: Path, count: int) -> Dict[str, A
         sam_format = handle.read(len(MAGIC)).decode("ascii", "replace")
     return {
         "sam_format": sam_format,
-        "sam_files_measured": len(files),
         "sam_bytes_per_file": sum(p.lstat().st_blocks * 512 for p in files) / len(files),
     }
 
@@ -186,7 +184,6 @@ def train(args: "RealSizeCosts", dataset: Dataset, method: str, frames: int) -> 
         "method": method,
         "frames": frames,
         "images": 16 * frames,
-        "iterations": args.iterations,
         "command": ["ns-train", *command],
         "peak_rss_bytes": usage.ru_maxrss * 1024,  # Linux: KiB
         "median_iteration_seconds": statistics.median(iterations[1:]),

@@ -10,32 +10,22 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import torch
 import tyro
-from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.models.base_model import Model
 from nerfstudio.utils.eval_utils import eval_setup
-from torch import Tensor
 
 from benchmarks.common import machine_description, provenance, table, timed, write_report
 from gear_nerfstudio.model.metrics import psnr
 
 
-def held_out(config: Path, frames: int) -> Tuple[Model, List[Tuple[RayBundle, Tensor]]]:
-    """A run's model, and ``frames`` held-out frames evenly spaced over the video: (ray bundle, image) each."""
+def render_rows(config: Path, frames: int, repeats: int) -> Dict[str, float]:
+    """Render measurements of one run, averaged over ``frames`` held-out frames evenly spaced over the video."""
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
     model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
-    views = []
+    rows: Dict[str, List[float]] = {}
     for index in np.linspace(0, len(dataset) - 1, frames).round().astype(int).tolist():
         camera = dataset.cameras[index : index + 1].to(model.device)
+        rays = camera.generate_rays(camera_indices=0, keep_shape=True)
         truth = dataset.get_image_float32(index)[..., :3].to(model.device)
-        views.append((camera.generate_rays(camera_indices=0, keep_shape=True), truth))
-    return model, views
-
-
-def render_rows(config: Path, frames: int, repeats: int) -> Dict[str, float]:
-    """Render measurements of one run, averaged over its held-out frames."""
-    model, views = held_out(config, frames)
-    rows: Dict[str, List[float]] = {}
-    for rays, truth in views:
         with torch.no_grad():
             generic_s, generic = timed(lambda: Model.get_outputs_for_camera_ray_bundle(model, rays), repeats)
             with model.rendering("num_samples"):
