@@ -49,7 +49,8 @@ class Tracking:
             scene = self.output / "scene"
             write_synthetic_scene(scene, SyntheticSpec(dataset="n3d", width=self.width, height=self.height,
                                                        frames=self.frames, cameras=self.cameras))
-            config = self.train(scene)
+            data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache")]
+            config = train_preset(self.output, self.iterations, self.seed, data)
         click_time = self.click_frame / (self.frames - 1)
         rows = []
         for object_id in self.objects:
@@ -65,10 +66,6 @@ class Tracking:
             "", *table(["object", "mIoU", "Acc.", "t-mIoU", "t-Acc."], rows),
         ]  # fmt: skip
         write_report(page("Tracking on a synthetic scene", lines), self.output / "tracking.md")
-
-    def train(self, scene: Path) -> Path:
-        data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(self.output / "cache")]
-        return train_preset(self.output, self.iterations, self.seed, data)
 
     def click_pixel(self, scene: Path, object_id: int) -> Tuple[float, float]:
         """The pixel centre deepest inside the object's ground-truth mask at the clicked frame."""
@@ -100,13 +97,13 @@ def deepest_pixel(mask: np.ndarray) -> Tuple[float, float]:
 
 def track_click(
     config: Path, folder: Path, camera: str, click_time: float, pixel: Tuple[float, float], target: str,
-    video: bool = True, log: Optional[Path] = None,
+    log: Optional[Path] = None,
 ) -> Dict:
     """`ns-gear-track` of one positive click at `pixel` of `camera` into the `target` camera(s), written to
-    `folder` (with its overlay videos when `video`; its output to `log` when given); returns its tracking.json."""
+    `folder` without overlay videos (its output to `log` when given); returns its tracking.json."""
     ns(
         "ns-gear-track", "--load-config", str(config), "--output-dir", str(folder), "--overwrite", "--click-camera",
         camera, "--click-time", str(click_time), "--positive", str(pixel[0]), str(pixel[1]), "--target-cameras",
-        target, "--video" if video else "--no-video", log=log,
+        target, "--no-video", log=log,
     )  # fmt: skip
     return json.loads((folder / "tracking.json").read_text())

@@ -87,7 +87,7 @@ class TrackingReal:
             x, y = (value / self.downscale for value in deepest_pixel(person))
             folder, log = self.output / f"track_person{index}", self.output / f"track_person{index}.log"
             try:
-                summary = track_click(config, folder, self.click_camera, click_time, (x, y), self.held_out, False, log)
+                summary = track_click(config, folder, self.click_camera, click_time, (x, y), self.held_out, log)
             except subprocess.CalledProcessError:
                 # A refused click is a failed track: no mask at any time.
                 rows.append([f"{index} (click {x:.1f}, {y:.1f})", "0.0 | n/a | 0.0 | n/a"])
