@@ -89,13 +89,9 @@ class Run:
 
         return [self.timed(window) / length for _ in range(count)]
 
-    def held_out_camera(self):
-        """The first held-out camera, on the model's device."""
-        return self.trainer.pipeline.datamanager.eval_dataset.cameras[0:1].to(self.model.device)
-
     def render(self, count: int) -> List[float]:
         """Seconds per full-frame render of the held-out camera (after one warm-up render)."""
-        camera = self.held_out_camera()
+        camera = self.trainer.pipeline.datamanager.eval_dataset.cameras[0:1].to(self.model.device)
         with evaluating(self.model):
             self.model.get_outputs_for_camera(camera)
             if self.cuda:

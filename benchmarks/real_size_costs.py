@@ -65,16 +65,12 @@ def disk_bytes(folder: Path) -> int:
     return sum(p.lstat().st_blocks * 512 for p in folder.rglob("*"))
 
 
-def content_folder(work: Path, dataset: Dataset, content: str) -> Path:
-    return work / "disk" / dataset.name / content.split()[0]
-
-
-def measure_frames(dataset: Dataset, content: str, images: Sequence[Image.Image], work: Path) -> Dict[str, Any]:
-    """The frame cache of one dataset's real size on upscaled real content (the dataset's files, then its cache)."""
+def measure_caches(dataset: Dataset, content: str, images: Sequence[Image.Image], work: Path) -> Dict[str, Any]:
+    """The frame cache (of the dataset's files) and the SAM cache of a dataset's real size on upscaled real content."""
     from gear_nerfstudio.data.frame_cache import cache_image_frames, cache_video_frames
     from gear_nerfstudio.tools.video import write_video
 
-    folder = content_folder(work, dataset, content)
+    folder = work / "disk" / dataset.name / content.split()[0]
     shutil.rmtree(folder, ignore_errors=True)
     frame_cache = folder / "frame-cache"
     frame_cache.mkdir(parents=True)
@@ -83,25 +79,20 @@ def measure_frames(dataset: Dataset, content: str, images: Sequence[Image.Image]
         video = folder / "source.mp4"
         write_video(video, big, fps=30)
         cache_video_frames([video], list(range(len(big))), [dataset.train_size], frame_cache)
-        in_place = False
+        in_place, trained = False, sorted(frame_cache.rglob("*.png"))
     else:
         sources = [folder / f"frame{i:02d}.png" for i in range(len(big))]
         for rgb, path in zip(big, sources):
             Image.fromarray(rgb).save(path)
         cached = cache_image_frames([[p] for p in sources], [0], [dataset.train_size] * len(big), frame_cache)
-        in_place = [row[0] for row in cached] == sources
+        in_place, trained = [row[0] for row in cached] == sources, sources
     return {
         "dataset": dataset.name,
         "content": content,
         "in_place": in_place,
         "frame_cache_bytes_per_frame": disk_bytes(frame_cache) / len(big),
+        **measure_sam(trained, folder / "sam-cache", SAM_IMAGES),
     }
-
-
-def training_frames(work: Path, dataset: Dataset, content: str) -> List[Path]:
-    """The frames at the training size that `measure_frames` left: the cached PNGs, or the sources read in place."""
-    folder = content_folder(work, dataset, content)
-    return sorted((folder / "frame-cache").rglob("*.png") if dataset.files == "video" else folder.glob("frame*.png"))
 
 
 def measure_sam(frames: Sequence[Path], folder: Path, count: int) -> Dict[str, Any]:
@@ -304,10 +295,7 @@ class RealSizeCosts:
         for name in self.datasets:
             dataset = DATASETS[name]
             for source, images in real_content().items():
-                frames = measure_frames(dataset, source, images, self.output)
-                folder = content_folder(self.output, dataset, source) / "sam-cache"
-                measured.append({**frames, **measure_sam(training_frames(self.output, dataset, source), folder,
-                                                         SAM_IMAGES)})  # fmt: skip
+                measured.append(measure_caches(dataset, source, images, self.output))
                 print(f"[real_size_costs] disk: {measured[-1]}", flush=True)
         keys = {(r["dataset"], r["content"], r["sam_format"]) for r in measured}
         measured += [r for r in old if (r["dataset"], r["content"], r["sam_format"]) not in keys]
