@@ -64,8 +64,7 @@ def timed_train(arguments: Sequence[str], timing: Path, log: Path):
 
 def train_child(timing_path: Path, arguments: List[str]) -> None:
     """Child process: ns-train with hooks that write to ``timing_path`` each checkpoint's wall-clock and CPU seconds of
-    training (checkpoint writes left out), the totals, each iteration's seconds and on CUDA the peak allocated MiB."""
-    import torch
+    training (checkpoint writes left out), the totals and each iteration's seconds."""
     from nerfstudio.engine.trainer import Trainer
     from nerfstudio.scripts.train import entrypoint
 
@@ -81,7 +80,6 @@ def train_child(timing_path: Path, arguments: List[str]) -> None:
             "train_cpu_seconds": checkpoints[-1]["cpu_seconds"] if checkpoints else None,
             "checkpoints": checkpoints,
             "iteration_seconds": state["iterations"],
-            "peak_cuda_mib": torch.cuda.max_memory_allocated() / 1024**2 if torch.cuda.is_initialized() else None,
         }
         timing_path.write_text(json.dumps(timing, indent=1))
 

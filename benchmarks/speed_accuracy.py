@@ -137,7 +137,7 @@ class SpeedAccuracy:
         write_report(text, self.output / "speed_accuracy.md")
         if self.results is not None:
             self.results.mkdir(parents=True, exist_ok=True)
-            for path in (self.output / "speed_accuracy.md", self.output / "speed_accuracy.png"):
+            for path in (self.output / "speed_accuracy.md", self.output / "speed_accuracy.png", *report.views):
                 shutil.copyfile(path, self.results / path.name)
 
     @property
@@ -193,9 +193,11 @@ class SpeedAccuracy:
             "iterations": self.preset_iterations(),
             "train_seconds": timing["train_seconds"],
             "train_cpu_seconds": timing["train_cpu_seconds"],
-            "peak_cuda_mib": timing.get("peak_cuda_mib"),
-            "checkpoints": evaluate_checkpoints(run_dir / "config.yml", timing["checkpoints"], self.eval_frames),
+            "views": f"views_{scene.name}_{method}-seed{seed}.png",
         }
+        record["checkpoints"] = evaluate_checkpoints(
+            run_dir / "config.yml", timing["checkpoints"], self.eval_frames, self.output / record["views"]
+        )
         record_path.write_text(json.dumps(record, indent=1))
         return record
 
@@ -217,6 +219,8 @@ class Report:
         self.benchmark = benchmark
         self.records = records
         self.scenes = list(dict.fromkeys(r["scene"] for r in records))
+        self.views = [benchmark.output / r["views"] for r in records if "views" in r]
+        """The runs' pictures (``evaluate_checkpoints``)."""
         self.clock: Clock = "cpu_seconds" if benchmark.device == "cpu" else "seconds"
         """The headline clock: CPU time of the training process on the CPU, wall-clock time on CUDA."""
 
@@ -257,7 +261,9 @@ class Report:
             lines += ["", f"## Equal {CLOCKS[clock]}: the main methods' shortest mean", "", *self.equal_time(clock)]
         gains = [self.gain(scene) for scene in self.scenes if {"gear-nerf", "kplanes"} <= set(self.methods(scene))]
         lines += ["", "## Equal iterations", "", *self.equal_iterations(),
-                  "", f"## Gear-NeRF minus plain K-Planes, equal {CLOCKS[self.clock]}, paired by seed", "", *gains]
+                  "", f"## Gear-NeRF minus plain K-Planes, equal {CLOCKS[self.clock]}, paired by seed", "", *gains,
+                  "", "## Held-out views at the last checkpoint: ground truth | render | gear map, two frames", "",
+                  *(f"![{path.stem}]({path.name})" for path in self.views)]  # fmt: skip
         return lines
 
     def equal_time(self, clock: Clock) -> List[str]:
@@ -348,12 +354,13 @@ def cell(points: List[Dict[str, Any]], key: str, digits: int = 2, scale: float =
 
 
 def evaluate_checkpoints(
-    config_path: Path,
-    checkpoints: List[Dict[str, float]],
-    eval_frames: int,
+    config_path: Path, checkpoints: List[Dict[str, float]], eval_frames: int, picture: Path
 ) -> List[Dict[str, Any]]:
     """Held-out metrics and gear shares of each checkpoint of a run, loaded in turn into one pipeline (``eval_setup``,
-    test split = held-out camera, SAM features off: the metrics do not use them)."""
+    test split = held-out camera, SAM features off: the metrics do not use them); ``picture``: the last checkpoint's
+    ground truth | render | gear map at the first and middle scored frames."""
+    import torch
+    from PIL import Image
     from nerfstudio.utils.eval_utils import eval_load_checkpoint, eval_setup
 
     from gear_nerfstudio.model.metrics import MIN_MSE
@@ -373,9 +380,12 @@ def evaluate_checkpoints(
         eval_load_checkpoint(config, pipeline)
         metrics: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": [], "accumulation": [], "near_layer": []}
         sums = {key: 0.0 for key in SUMS}
+        rows = []
         for index in frames:
             outputs = model.get_outputs_for_camera(dataset.cameras[index : index + 1].to(pipeline.device))
-            image_metrics, _ = model.get_image_metrics_and_images(outputs, dataset[index])
+            image_metrics, images = model.get_image_metrics_and_images(outputs, dataset[index])
+            if index in (frames[0], frames[len(frames) // 2]):
+                rows.append(torch.cat([images["img"], images["gear"]], dim=1))
             for name in metrics:
                 metrics[name] += [float(image_metrics[name])] if name in image_metrics else []
             for name in SUMS:
@@ -389,4 +399,5 @@ def evaluate_checkpoints(
         })  # fmt: skip
         print(f"[speed_accuracy]   step {entry['step']:>6}  {entry['seconds']:8.1f} s  PSNR {results[-1]['psnr']:.2f}"
               f"  updates {results[-1]['gear_updates']}", flush=True)
+    Image.fromarray((torch.cat(rows).clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)).save(picture)
     return results

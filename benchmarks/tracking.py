@@ -100,10 +100,11 @@ def track_click(
     log: Optional[Path] = None,
 ) -> Dict:
     """`ns-gear-track` of one positive click at `pixel` of `camera` into the `target` camera(s), written to
-    `folder` without overlay videos (its output to `log` when given); returns its tracking.json."""
+    `folder` with its overlay videos, the pictures of the tables (its output to `log` when given); returns its
+    tracking.json."""
     ns(
         "ns-gear-track", "--load-config", str(config), "--output-dir", str(folder), "--overwrite", "--click-camera",
         camera, "--click-time", str(click_time), "--positive", str(pixel[0]), str(pixel[1]), "--target-cameras",
-        target, "--no-video", log=log,
+        target, log=log,
     )  # fmt: skip
     return json.loads((folder / "tracking.json").read_text())
