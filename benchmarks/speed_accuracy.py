@@ -375,6 +375,7 @@ def evaluate_checkpoints(
     dataset = pipeline.datamanager.eval_dataset
     frames = sorted({int(round(i)) for i in np.linspace(0, len(dataset) - 1, min(eval_frames, len(dataset)))})
     results = []
+    last = max(entry["step"] for entry in checkpoints)
     for entry in sorted(checkpoints, key=lambda e: e["step"]):
         config.load_step = int(entry["step"])
         eval_load_checkpoint(config, pipeline)
@@ -384,7 +385,7 @@ def evaluate_checkpoints(
         for index in frames:
             outputs = model.get_outputs_for_camera(dataset.cameras[index : index + 1].to(pipeline.device))
             image_metrics, images = model.get_image_metrics_and_images(outputs, dataset[index])
-            if index in (frames[0], frames[len(frames) // 2]):
+            if entry["step"] == last and index in (frames[0], frames[len(frames) // 2]):
                 rows.append(torch.cat([images["img"], images["gear"]], dim=1))
             for name in metrics:
                 metrics[name] += [float(image_metrics[name])] if name in image_metrics else []
