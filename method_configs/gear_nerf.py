@@ -6,10 +6,11 @@
   single-threaded on 30 frames of 30 cameras at 304x168 on a 2-core machine, ``real_capture_causes.md``).
 * ``gear-nerf-baseline``: N_gear = 1, i.e. plain K-Planes, sized and sampled as the small preset.
 
-Every preset takes its base samples from proposal networks (K-Planes), has a per-camera appearance code and
-renders evaluation views from the near plane (``GearNeRFModelConfig``). On the real captures the proposal sampler
-beat 24 uniform samples at about equal time and grew none of the layers that uniform samples left in front of the
-held-out camera (``benchmarks/results/real_capture_causes.md``). Long videos never load all frames: the
+Every preset takes its base samples from proposal networks (K-Planes), has a per-camera appearance code, renders
+evaluation views from the near plane (``GearNeRFModelConfig``) and draws a quarter of each batch's rays through
+points triangulated from the training views, with their depth (``data.sparse_points``). On the real captures the
+proposal sampler beat 24 uniform samples at about equal time and grew none of the layers that uniform samples left
+in front of the held-out camera (``benchmarks/results/real_capture_causes.md``). Long videos never load all frames: the
 datamanager keeps 40 training images in memory at a time, replaced every 100 iterations.
 """
 
@@ -37,6 +38,9 @@ its own default iterations as its epoch for L and L' (Sec 4.3)."""
 GEAR1_ROW_FRACTION = 0.25
 """Gear 1's space-time planes keep a quarter of the frames as rows (the paper: 1 row), so that what stays in gear 1
 and moves renders blurred, not as a blend of poses (docs/decisions.md)."""
+
+SPARSE_DEPTH_SHARE = 0.25
+"""A quarter of each batch's rays go through triangulated points, with the sparse depth loss (docs/decisions.md)."""
 
 
 def schedule_options(iterations: int) -> List[str]:
@@ -74,6 +78,7 @@ def trainer_config(
                 dataparser=TechnicolorDataParserConfig(),
                 train_num_rays_per_batch=num_rays_per_batch,
                 eval_num_rays_per_batch=num_rays_per_batch,
+                sparse_depth_share=SPARSE_DEPTH_SHARE,
                 train_num_images_to_sample_from=40,
                 train_num_times_to_repeat_images=100,
                 eval_num_images_to_sample_from=8,

@@ -1,14 +1,16 @@
 """Losses of Gear-NeRF training: Eq 2 (colour), Eq 9 (SAM features), the K-Planes regularisers of the field and of
-the proposal networks, and the proposal (interlevel) and distortion losses."""
+the proposal networks, the proposal (interlevel) and distortion losses, and the sparse depth loss (DS-NeRF) on the
+rays through triangulated points."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any, Dict, Sequence
 
+import torch
 from torch import Tensor
 
-from nerfstudio.model_components.losses import MSELoss, distortion_loss, interlevel_loss
+from nerfstudio.model_components.losses import DepthLossType, MSELoss, depth_loss, distortion_loss, interlevel_loss
 from nerfstudio.model_components.renderers import RGBRenderer
 
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
@@ -39,6 +41,10 @@ class LossWeights:
     """Proposal (interlevel) loss, proposal base sampler only."""
     distortion: float = 0.0
     """Distortion loss (Mip-NeRF 360) on the base samples, proposal base sampler only; 0: off."""
+    sparse_depth: float = 0.01
+    """DS-NeRF's depth loss on the rays through triangulated points (proposal base sampler only)."""
+    sparse_depth_spread: float = 0.02
+    """Standard deviation of each point's depth in that loss, as a fraction of the depth."""
 
 
 class GearLosses:
@@ -80,8 +86,27 @@ class GearLosses:
             losses["interlevel_loss"] = weights.interlevel * interlevel_loss(
                 outputs["weights_list"], outputs["ray_samples_list"]
             )
+            if weights.sparse_depth > 0 and "sparse_depth" in batch:
+                losses["sparse_depth_loss"] = weights.sparse_depth * self.sparse_depth(outputs, batch["sparse_depth"])
             if weights.distortion > 0:
                 losses["distortion_loss"] = weights.distortion * distortion_loss(
                     outputs["weights_list"], outputs["ray_samples_list"]
                 )
         return losses
+
+    def sparse_depth(self, outputs: Dict[str, Any], target: Tensor) -> Tensor:
+        """DS-NeRF's loss (nerfstudio's ``depth_loss``) on the rays with a depth between their near and far planes,
+        summed over the sampling levels."""
+        target = target.to(outputs["depth"].device)
+        frustums = outputs["ray_samples_list"][-1].frustums
+        rows = (target[:, 0] > frustums.starts[:, 0, 0]) & (target[:, 0] < frustums.ends[:, -1, 0])
+        if not rows.any():
+            return target.new_zeros(())
+        variance = (self.weights.sparse_depth_spread * target[rows, None]) ** 2  # DS-NeRF's "sigma" is a variance
+        return sum(
+            depth_loss(
+                weights[rows], samples[rows], target[rows], outputs["depth"][rows], variance,
+                torch.ones_like(target[rows]), is_euclidean=True, depth_loss_type=DepthLossType.DS_NERF,
+            )
+            for weights, samples in zip(outputs["weights_list"], outputs["ray_samples_list"])
+        )  # fmt: skip
