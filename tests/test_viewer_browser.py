@@ -426,9 +426,16 @@ def test_viewer_in_a_browser_renders_scrubs_time_and_tracks_a_click(trained, bro
     # The first view shows the scene: the viewer opens at the held-out camera, so no training camera's
     # frustum (drawn with its image) covers the render, and hiding them changes the view by little (at the
     # first training camera its frustum covers the middle: 13 grey levels on 32-px block means).
-    driver.find_element(By.XPATH, "//button[normalize-space()='Hide Train Cams']").click()
-    hidden = settled_view(driver, box, 60)
-    covered = np.abs(block_means(hidden, box) - block_means(first, box)).mean()
+    # Under load the still render can come after a screenshot settled on the moving frame: then the two views are
+    # taken again, frusta shown and hidden, until they hold the same render (three tries).
+    for _ in range(3):
+        driver.find_element(By.XPATH, "//button[normalize-space()='Hide Train Cams']").click()
+        hidden = settled_view(driver, box, 60)
+        covered = np.abs(block_means(hidden, box) - block_means(first, box)).mean()
+        if covered < 4.0:
+            break
+        driver.find_element(By.XPATH, "//button[normalize-space()='Show Train Cams']").click()
+        first = settled_view(driver, box, 60)
     assert covered < 4.0, f"the training cameras' frusta cover the first view ({covered:.1f} grey levels)"
 
     press(driver, by_label(driver, "Time", "*[@role='slider']"), Keys.END)  # time 1.0, the last frame
