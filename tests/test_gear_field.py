@@ -178,6 +178,20 @@ def test_gradients_reach_only_gears_with_samples():
     assert field.basis.weight.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("plane_kernel", ["torch", "warp"])
+def test_a_training_chunk_without_samples_before_any_gear_is_used(plane_kernel):
+    """A batch whose rays all miss the scene box, at the first step: no sample, no gear in use yet."""
+    if plane_kernel == "warp":
+        pytest.importorskip("warp")
+    field = small_field(plane_kernel=plane_kernel)
+    field.train()
+    empty = torch.zeros(0, 3)
+    assert field.gear_features(empty, torch.zeros(0, 1), torch.zeros(0, dtype=torch.long)).shape == (0, 8)
+    outputs = evaluate(field, empty, empty, torch.zeros(0, 1))
+    assert outputs["density"].shape == (0, 1) and outputs["rgb"].shape == (0, 3)
+    assert not field.used_gears.any()
+
+
 def test_forward_uses_the_gear_function_and_reaches_every_gear():
     field = small_field()
     set_gear_ramp(field, 0.0, 4.0)  # g = 1 + 2 (x + 1), from 1 to 5

@@ -254,6 +254,8 @@ class GearField(Field):
             used, renewed = torch.stack([self.used_gears, new.flatten(1).any(dim=1)]).tolist()
             self.used_gears_seen = (self.used_columns, self.used_columns._version, used)
             self.inherit_new_columns(new, renewed)
+            if not any(used):  # no sample on any process yet: nothing to look up
+                return x.new_zeros(len(x), self.feature_dim)
             stacked = self.used_gears
         else:
             used, stacked = [True] * self.num_gears, torch.ones_like(self.gear_rows)
@@ -298,7 +300,7 @@ class GearField(Field):
         x, inside = normalize_positions(positions.reshape(-1, 3), self.aabb, self.spatial_distortion)
         t = broadcast_times(ray_samples.times, shape, positions).reshape(-1, 1)
         density, embedding = self.normalised_density(x, t, inside)
-        return density.reshape(*shape, 1), embedding.reshape(*shape, -1)
+        return density.reshape(*shape, 1), embedding.reshape(*shape, embedding.shape[-1])
 
     def normalised_density(
         self,
