@@ -17,6 +17,7 @@ import numpy as np
 
 from benchmarks.common import REAL, page, table, timed_train, write_report
 from gear_nerfstudio.method_configs.gear_nerf import schedule_options
+from gear_nerfstudio.spread import evenly_spread
 
 Clock = Literal["seconds", "cpu_seconds"]
 """A checkpoint's training time: wall-clock or CPU seconds of the training process."""
@@ -376,7 +377,7 @@ def evaluate_checkpoints(
     config, pipeline, _, _ = eval_setup(config_path, test_mode="test", update_config_callback=no_sam)
     model = pipeline.model
     dataset = pipeline.datamanager.eval_dataset
-    frames = sorted({int(round(i)) for i in np.linspace(0, len(dataset) - 1, min(eval_frames, len(dataset)))})
+    frames = evenly_spread(len(dataset), eval_frames)
     results = []
     last = max(entry["step"] for entry in checkpoints)
     for entry in sorted(checkpoints, key=lambda e: e["step"]):

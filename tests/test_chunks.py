@@ -25,6 +25,7 @@ def train_args(scene, cache, iterations, *extra):
     return [
         "gear-nerf-small", "--machine.device-type", "cpu", "--vis", "tensorboard",
         "--max-num-iterations", str(iterations), "--pipeline.gear-updates.iterations-per-epoch", str(iterations // 20),
+        "--pipeline.gear-updates.max-steps", "10",  # the Eq 11 steps are most of a small run's time
         "--pipeline.datamanager.train-num-rays-per-batch", "256",  # what is checked is the chunking, not the fit
         "--steps-per-eval-all-images", "100000", "--steps-per-save", "50", "--save-only-latest-checkpoint", "False",
         "--pipeline.datamanager.sam-cache-dir", str(cache / "sam"), *extra,

@@ -9,8 +9,10 @@ import torch
 from nerfstudio.data.datasets.base_dataset import InputDataset
 
 from gear_nerfstudio.data.datamanager import GearDataManagerConfig
-from gear_nerfstudio.data.sparse_points import instants, triangulate
+from gear_nerfstudio.data.sparse_points import triangulate
 from gear_nerfstudio.data_parsers.technicolor import TechnicolorDataParserConfig
+from gear_nerfstudio.errors import InputError
+from gear_nerfstudio.spread import evenly_spread
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
 pytestmark = pytest.mark.cost(20)
@@ -23,10 +25,13 @@ def textured_scene(tmp_path_factory) -> Path:
     return write_synthetic_scene(root / "scene", SyntheticSpec(dataset="technicolor", width=160, height=120, frames=2))
 
 
-def test_instants_spread_over_the_window():
-    assert instants(30, 3) == [0, 14, 29]
-    assert instants(2, 3) == [0, 1]
-    assert instants(1, 3) == [0]
+def test_instants_spread_over_the_window_and_the_share_is_checked_at_once():
+    assert evenly_spread(30, 3) == [0, 14, 29]
+    assert evenly_spread(2, 3) == [0, 1]
+    assert evenly_spread(1, 3) == [0]
+    for share in (-0.1, 1.0):
+        with pytest.raises(InputError, match="sparse-depth-share must lie in"):
+            GearDataManagerConfig(sparse_depth_share=share)
 
 
 def test_triangulated_depths_are_the_scene_depths(textured_scene, tmp_path):

@@ -24,10 +24,11 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from gear_nerfstudio.data.sparse_points import SparseDepth, instants, triangulate
+from gear_nerfstudio.data.sparse_points import SparseDepth, triangulate
 from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.sam.interface import Embedding, SamBackend
 from gear_nerfstudio.sam.feature_cache import SamFeatureCache
+from gear_nerfstudio.spread import evenly_spread
 
 
 @dataclass
@@ -43,6 +44,11 @@ class GearDataManagerConfig(VanillaDataManagerConfig):
     """Share of each batch's rays drawn through points triangulated from the training views; 0: none."""
     sparse_depth_instants: int = 3
     """Instants of the window whose training views are triangulated, spread evenly."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not 0 <= self.sparse_depth_share < 1:
+            raise InputError(f"--pipeline.datamanager.sparse-depth-share must lie in [0, 1), got {self.sparse_depth_share}")
 
 
 class GearDataManager(VanillaDataManager):
@@ -95,9 +101,7 @@ class GearDataManager(VanillaDataManager):
     def triangulated(self) -> SparseDepth:
         """The rays through points triangulated from the training views (``sparse_points``), made at the first call."""
         if self.sparse_depth is None:
-            if not 0 <= self.config.sparse_depth_share < 1:
-                raise InputError(f"sparse_depth_share must lie in [0, 1), got {self.config.sparse_depth_share}")
-            at = instants(self.train_dataset.metadata.get("num_frames", 1), self.config.sparse_depth_instants)
+            at = evenly_spread(self.train_dataset.metadata.get("num_frames", 1), self.config.sparse_depth_instants)
             self.sparse_depth = triangulate(self.train_dataset, at)
             if len(self.sparse_depth):
                 CONSOLE.log(f"Sparse depth: {len(self.sparse_depth)} rays through points triangulated at frames {at}")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, List, Sequence, Tuple
+from typing import Iterator, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -39,11 +39,6 @@ class SparseDepth:
         """``count`` rays drawn at random (with replacement)."""
         rows = torch.randint(len(self), (count,))
         return SparseDepth(self.indices[rows], self.depth[rows], self.rgb[rows])
-
-
-def instants(num_frames: int, count: int) -> List[int]:
-    """``count`` frame indices spread evenly over a window of ``num_frames``, its first and last included."""
-    return sorted({int(round(i)) for i in np.linspace(0, num_frames - 1, min(count, num_frames))})
 
 
 def triangulate(dataset: InputDataset, frames: Sequence[int]) -> SparseDepth:

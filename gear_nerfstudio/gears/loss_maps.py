@@ -6,12 +6,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from torch import Tensor
+
+from gear_nerfstudio.spread import evenly_spread
 
 
 def patch_size_for(shape: Tuple[int, int], patch_size: int) -> int:
@@ -94,8 +95,7 @@ def frame_change(
     change = torch.zeros(size)
     if len(others) == 0:
         return change
-    picks = np.unique(np.linspace(0, len(others) - 1, min(num_frames, len(others))).round())
-    for index in others[torch.from_numpy(picks.astype(np.int64))].tolist():
+    for index in others[evenly_spread(len(others), num_frames)].tolist():
         change = torch.maximum(change, (rgb - resized_image(dataset, int(index), size)).abs().mean(-1))
     return change
 

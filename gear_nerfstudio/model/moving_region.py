@@ -24,6 +24,7 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.datasets.base_dataset import InputDataset
 
 from gear_nerfstudio.data.errors import DatasetError
+from gear_nerfstudio.spread import evenly_spread
 
 CHANGE_THRESHOLD = 0.04
 """A pixel moves when the largest channel difference from the window's median, averaged over its 3 x 3
@@ -84,8 +85,7 @@ class EvalViews:
     def background(self) -> Float[Tensor, "H W 3"]:
         """Per-pixel median of up to ``MEDIAN_FRAMES`` views spread over the window."""
         if self._background is None:
-            count = len(self.dataset)
-            picks = sorted({int(round(i)) for i in np.linspace(0, count - 1, min(MEDIAN_FRAMES, count))})
+            picks = evenly_spread(len(self.dataset), MEDIAN_FRAMES)
             stack = np.stack([self.dataset.get_numpy_image(i)[..., :3] for i in picks])
             self._background = torch.from_numpy(np.median(stack, axis=0).astype(np.float32) / 255.0)
         return self._background
