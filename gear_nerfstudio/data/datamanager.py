@@ -48,7 +48,8 @@ class GearDataManagerConfig(VanillaDataManagerConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         if not 0 <= self.sparse_depth_share < 1:
-            raise InputError(f"--pipeline.datamanager.sparse-depth-share must lie in [0, 1), got {self.sparse_depth_share}")
+            share = self.sparse_depth_share
+            raise InputError(f"--pipeline.datamanager.sparse-depth-share must lie in [0, 1), got {share}")
 
 
 class GearDataManager(VanillaDataManager):
