@@ -27,8 +27,6 @@ METHODS: Dict[str, Tuple[str, str]] = {
     "gear-nerf": ("Gear-NeRF", ""),
     "kplanes": ("plain K-Planes (N_gear = 1) with L_SAM", "--pipeline.model.num-gears 1"),
     "gear-nerf-no-points": ("Gear-NeRF without sparse points", "--pipeline.datamanager.sparse-depth-share 0"),
-    "kplanes-no-points": ("one gear without sparse points",
-                          "--pipeline.model.num-gears 1 --pipeline.datamanager.sparse-depth-share 0"),
 }
 """Method keys: (label in the tables and the plot, ns-train overrides on the base preset)."""
 
