@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -12,6 +13,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 import pytest
+from filelock import FileLock
 
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
@@ -108,22 +110,39 @@ def ns(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="session")
-def tiny_run(tmp_path_factory):
+def tiny_run(tmp_path_factory, worker_id):
     """A gear-nerf-small run of 20 iterations on a tiny synthetic N3D scene (24 x 18, 3 frames, 5 cameras), with
     epochs of 1 iteration (gear updates at steps 3, 6 and 9), then resumed from its checkpoint for 10 more:
-    (root, scene, first run folder, resumed run folder)."""
-    root = tmp_path_factory.mktemp("commands")
+    (root, scene, first run folder, resumed run folder). Trained once for all the test processes (the modules that
+    use it may run on several), in their common temporary folder, where the tests write files of their own names."""
+    if worker_id == "master":
+        return train_tiny_run(tmp_path_factory.mktemp("commands"))
+    root = tmp_path_factory.getbasetemp().parent / "commands"
+    with FileLock(f"{root}.lock"):
+        if not (root / "trained").exists():
+            shutil.rmtree(root, ignore_errors=True)
+            train_tiny_run(root)
+            (root / "trained").touch()
+    return run_folders(root)
+
+
+def run_folders(root: Path) -> tuple:
+    runs = root / "runs" / "tiny" / "gear-nerf-small"
+    return root, root / "scene", runs / "first", runs / "resumed"
+
+
+def train_tiny_run(root: Path) -> tuple:
     scene = write_synthetic_scene(root / "scene", SyntheticSpec(dataset="n3d", width=24, height=18, frames=3, cameras=5))
     common = [
         "--output-dir", str(root / "runs"), "--experiment-name", "tiny", "--machine.device-type", "cpu",
         "--vis", "tensorboard", "--steps-per-save", "10", "--steps-per-eval-all-images", "1000",
-        "--pipeline.gear-updates.iterations-per-epoch", "1",
+        "--pipeline.gear-updates.iterations-per-epoch", "1", "--pipeline.datamanager.sam-cache-dir", str(root / "sam"),
     ]
     data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache")]
     ns("ns-train", "gear-nerf-small", *common, "--timestamp", "first", "--max-num-iterations", "20", *data, cwd=root)
-    first = root / "runs" / "tiny" / "gear-nerf-small" / "first"
+    folders = run_folders(root)
     ns(
         "ns-train", "gear-nerf-small", *common, "--timestamp", "resumed", "--max-num-iterations", "10",
-        "--load-dir", str(first / "nerfstudio_models"), *data, cwd=root,
+        "--load-dir", str(folders[2] / "nerfstudio_models"), *data, cwd=root,
     )
-    return root, scene, first, root / "runs" / "tiny" / "gear-nerf-small" / "resumed"
+    return folders

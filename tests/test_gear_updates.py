@@ -336,10 +336,10 @@ def test_a_resumed_run_goes_on_with_the_updates_where_they_were(loop_run):
     root, first, _ = loop_run
     checkpoints = root / "runs" / "loop" / "gear-nerf-small" / "first" / "nerfstudio_models"
     # From step 100 (after the update at 60) to step 399: the updates at 120 and 180 are the 2nd and 3rd.
-    # What is checked is the schedule, not the fit: 256 rays, and no guard (with so few rays it may undo update 2,
-    # which rightly ends the updates; the guard has its own test below).
+    # What is checked is the schedule, not the fit: 256 rays, 10 Eq 11 steps, and no guard (with so few rays it may
+    # undo update 2, which rightly ends the updates; the guard has its own test below).
     middle = copy.deepcopy(
-        loop_config(root, "middle", LOOP_ITERATIONS - 101, load_dir=checkpoints, guard_tolerance=math.inf)
+        loop_config(root, "middle", LOOP_ITERATIONS - 101, load_dir=checkpoints, guard_tolerance=math.inf, max_steps=10)
     )
     middle.load_step = 100
     middle.pipeline.datamanager.train_num_rays_per_batch = 256
