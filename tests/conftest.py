@@ -116,7 +116,9 @@ def tiny_run(tmp_path_factory, worker_id):
     (root, scene, first run folder, resumed run folder). Trained once for all the test processes (the modules that
     use it may run on several), in their common temporary folder, where the tests write files of their own names."""
     if worker_id == "master":
-        return train_tiny_run(tmp_path_factory.mktemp("commands"))
+        root = tmp_path_factory.mktemp("commands")
+        train_tiny_run(root)
+        return run_folders(root)
     root = tmp_path_factory.getbasetemp().parent / "commands"
     with FileLock(f"{root}.lock"):
         if not (root / "trained").exists():
@@ -127,11 +129,13 @@ def tiny_run(tmp_path_factory, worker_id):
 
 
 def run_folders(root: Path) -> tuple:
+    """``tiny_run``'s (root, scene, first run folder, resumed run folder) under ``root``."""
     runs = root / "runs" / "tiny" / "gear-nerf-small"
     return root, root / "scene", runs / "first", runs / "resumed"
 
 
-def train_tiny_run(root: Path) -> tuple:
+def train_tiny_run(root: Path) -> None:
+    """Train ``tiny_run``'s two runs under ``root``."""
     scene = write_synthetic_scene(root / "scene", SyntheticSpec(dataset="n3d", width=24, height=18, frames=3, cameras=5))
     common = [
         "--output-dir", str(root / "runs"), "--experiment-name", "tiny", "--machine.device-type", "cpu",
@@ -140,9 +144,8 @@ def train_tiny_run(root: Path) -> tuple:
     ]
     data = ["neural-3d-video-data", "--data", str(scene), "--cache-dir", str(root / "cache")]
     ns("ns-train", "gear-nerf-small", *common, "--timestamp", "first", "--max-num-iterations", "20", *data, cwd=root)
-    folders = run_folders(root)
+    _, _, first, _ = run_folders(root)
     ns(
         "ns-train", "gear-nerf-small", *common, "--timestamp", "resumed", "--max-num-iterations", "10",
-        "--load-dir", str(folders[2] / "nerfstudio_models"), *data, cwd=root,
+        "--load-dir", str(first / "nerfstudio_models"), *data, cwd=root,
     )
-    return folders
