@@ -126,29 +126,6 @@ def test_sam_loss_only_with_sam_features():
     assert torch.isclose(loss, torch.mean((outputs["sam"] - batch["sam_features"]) ** 2))
 
 
-def test_the_depth_loss_weight_changes_at_its_step_through_the_training_callbacks():
-    """The model's training callbacks give the losses the step: `sparse-depth` before `sparse-depth-steps`,
-    `sparse-depth-late` from it on."""
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
-
-    weights = LossWeights(sparse_depth=0.01, sparse_depth_steps=5, sparse_depth_late=0.001)
-    proposal = ProposalConfig(num_samples=(16,), resolutions=(8,))
-    model = make_model(base_sampler="proposal", proposal=proposal, losses=weights)
-    model.train()
-    outputs = model(make_rays())
-    batch = {**make_batch(), "sparse_depth": torch.full((48, 1), 2.5)}
-    callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
-
-    def depth_loss_at(step: int) -> torch.Tensor:
-        for callback in callbacks:
-            callback.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        return model.get_loss_dict(outputs, batch)["sparse_depth_loss"]
-
-    before, at_step, after = depth_loss_at(4), depth_loss_at(5), depth_loss_at(900)
-    assert before > 0
-    assert torch.isclose(at_step, before / 10) and torch.isclose(after, before / 10)
-
-
 def test_param_groups_separate_the_gear_function():
     model = make_model()
     groups = model.get_param_groups()

@@ -23,7 +23,7 @@ from torch.nn import Parameter
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import OrientedBox
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.model_components.ray_samplers import UniformSampler
 from nerfstudio.model_components.scene_colliders import AABBBoxCollider, NearFarCollider
@@ -285,13 +285,8 @@ class GearNeRFModel(Model):
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
-        """Proposal weight annealing and update schedule, when the proposal sampler is used; the losses' step."""
-
-        def set_step(step: int) -> None:
-            self.losses.step = step
-
-        before = [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION]
-        return [TrainingCallback(before, set_step, update_every_num_iters=1), *self.sampler.training_callbacks()]
+        """Proposal weight annealing and update schedule, when the proposal sampler is used."""
+        return self.sampler.training_callbacks()
 
     def get_outputs(self, ray_bundle: RayBundle, request: RenderRequest = RenderRequest()) -> Dict[str, Any]:
         """The one forward pass: base samples -> gear levels -> split samples (Sec 4.4) -> field (Eq 3-7) -> rgb,

@@ -42,12 +42,7 @@ class LossWeights:
     distortion: float = 0.0
     """Distortion loss (Mip-NeRF 360) on the base samples, proposal base sampler only; 0: off."""
     sparse_depth: float = 0.01
-    """DS-NeRF's depth loss on the rays through triangulated points (proposal base sampler only), until
-    `sparse-depth-steps`."""
-    sparse_depth_steps: int = 1_000_000_000
-    """Steps at the weight `sparse-depth`; from then on, the weight `sparse-depth-late`."""
-    sparse_depth_late: float = 0.01
-    """The depth loss's weight after `sparse-depth-steps`."""
+    """DS-NeRF's depth loss on the rays through triangulated points (proposal base sampler only)."""
     sparse_depth_spread: float = 0.02
     """Standard deviation of each point's depth in that loss, as a fraction of the depth."""
 
@@ -68,8 +63,6 @@ class GearLosses:
         self.renderer = renderer
         self.proposal_networks = tuple(proposal_networks)
         self.mse = MSELoss()
-        self.step = 0
-        """The training step (set by ``GearNeRFModel``'s callback)."""
 
     def __call__(self, outputs: Dict[str, Any], batch: Dict[str, Tensor], training: bool) -> Dict[str, Tensor]:
         """Eq 2 (rgb), Eq 9 (sam, when the batch has "sam_features") and, in training, the regularisers (computed
@@ -93,9 +86,8 @@ class GearLosses:
             losses["interlevel_loss"] = weights.interlevel * interlevel_loss(
                 outputs["weights_list"], outputs["ray_samples_list"]
             )
-            depth_weight = weights.sparse_depth if self.step < weights.sparse_depth_steps else weights.sparse_depth_late
-            if depth_weight > 0 and "sparse_depth" in batch:
-                losses["sparse_depth_loss"] = depth_weight * self.sparse_depth(outputs, batch["sparse_depth"])
+            if weights.sparse_depth > 0 and "sparse_depth" in batch:
+                losses["sparse_depth_loss"] = weights.sparse_depth * self.sparse_depth(outputs, batch["sparse_depth"])
             if weights.distortion > 0:
                 losses["distortion_loss"] = weights.distortion * distortion_loss(
                     outputs["weights_list"], outputs["ray_samples_list"]
