@@ -118,13 +118,13 @@ def tiny_run(tmp_path_factory, worker_id):
     if worker_id == "master":
         root = tmp_path_factory.mktemp("commands")
         train_tiny_run(root)
-        return run_folders(root)
-    root = tmp_path_factory.getbasetemp().parent / "commands"
-    with FileLock(f"{root}.lock"):
-        if not (root / "trained").exists():
-            shutil.rmtree(root, ignore_errors=True)
-            train_tiny_run(root)
-            (root / "trained").touch()
+    else:
+        root = tmp_path_factory.getbasetemp().parent / "commands"
+        with FileLock(f"{root}.lock"):
+            if not (root / "trained").exists():
+                shutil.rmtree(root, ignore_errors=True)
+                train_tiny_run(root)
+                (root / "trained").touch()
     return run_folders(root)
 
 
