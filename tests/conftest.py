@@ -29,7 +29,10 @@ SPECS = {
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", "cost(seconds): about how long a module takes on one idle core")
+    config.addinivalue_line(
+        "markers", "cost(seconds): about how long a module takes in the suite (its --durations; tiny_run counts in "
+        "test_commands, which starts before the other modules that use it)",
+    )
 
 
 def pytest_collection_modifyitems(items):

@@ -15,7 +15,7 @@ from gear_nerfstudio.tools.synthetic.writers import write_video
 from tests.conftest import IMPORT_WARNING, command
 from tests.test_dataparsers import parse
 
-pytestmark = pytest.mark.cost(40)
+pytestmark = pytest.mark.cost(30)
 
 
 @pytest.fixture()

@@ -15,7 +15,7 @@ from gear_nerfstudio.chunks.plan import ChunkError, owners, plan_chunks, positio
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from tests.conftest import command, ns
 
-pytestmark = pytest.mark.cost(240)
+pytestmark = pytest.mark.cost(310)
 
 FRAMES = 24
 ITERATIONS = 100

@@ -10,7 +10,7 @@ from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthet
 from tests.conftest import ns
 from tests.test_chunks import train_args
 
-pytestmark = pytest.mark.cost(100)
+pytestmark = pytest.mark.cost(200)
 
 
 def test_ray_executor_gives_the_local_executors_checkpoints(tmp_path):

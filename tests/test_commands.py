@@ -15,7 +15,7 @@ from gear_nerfstudio.data_parsers.neural_3d_video import Neural3DVideoDataParser
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from tests.conftest import IMPORT_WARNING, command, ns
 
-pytestmark = pytest.mark.cost(60)
+pytestmark = pytest.mark.cost(200)
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ from gear_nerfstudio.gears.upshift import UpdatePoints, level_targets, select_po
 from gear_nerfstudio.method_configs.gear_nerf import gear_nerf, gear_nerf_small
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, rig_for, write_synthetic_scene
 
-pytestmark = pytest.mark.cost(420)
+pytestmark = pytest.mark.cost(360)
 
 
 def test_patch_prompts_pick_the_highest_and_lowest_patches():

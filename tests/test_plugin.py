@@ -10,7 +10,7 @@ import pytest
 
 from tests.conftest import command
 
-pytestmark = pytest.mark.cost(50)
+pytestmark = pytest.mark.cost(35)
 
 BIN = Path(sys.executable).parent
 PARSERS = ["technicolor-data", "neural-3d-video-data", "google-immersive-data"]

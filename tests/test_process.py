@@ -36,7 +36,7 @@ def brightness(instant: int) -> float:
     return 1.0 - 0.1 * instant
 
 
-pytestmark = [pytest.mark.cost(80), pytest.mark.skipif(not FLAME.is_dir(), reason="shared real data not present")]
+pytestmark = [pytest.mark.cost(110), pytest.mark.skipif(not FLAME.is_dir(), reason="shared real data not present")]
 
 
 def decode(path: Path) -> list:

@@ -27,7 +27,7 @@ from gear_nerfstudio.sam.feature_cache import MAX_COMPONENTS, SamFeatureCache, r
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from tests.conftest import SHARED_REAL
 
-pytestmark = pytest.mark.cost(40)
+pytestmark = pytest.mark.cost(30)
 
 BIN = Path(sys.executable).parent
 SPEC = SyntheticSpec(dataset="n3d", width=24, height=18, frames=2, cameras=3)  # 4 training, 2 held-out images

@@ -48,7 +48,7 @@ from segment_anything.utils.transforms import ResizeLongestSide  # noqa: E402
 
 # Exporting segment-anything's modules warns about traced constants, the legacy exporter and indexing.
 pytestmark = [
-    pytest.mark.cost(70),
+    pytest.mark.cost(100),
     pytest.mark.filterwarnings(
         "ignore::torch.jit.TracerWarning", "ignore:.*legacy TorchScript-based ONNX", "ignore:Exporting aten..index operator"
     ),

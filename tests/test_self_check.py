@@ -12,7 +12,7 @@ import pytest
 from tests.conftest import command, ns
 from tests.test_process import CAMERAS, FLAME, decode, expect_one_line_error, process
 
-pytestmark = [pytest.mark.cost(120), pytest.mark.skipif(not FLAME.is_dir(), reason="shared real data not present")]
+pytestmark = [pytest.mark.cost(170), pytest.mark.skipif(not FLAME.is_dir(), reason="shared real data not present")]
 
 
 BUMPED_OPTIONS = ("--calibration-frames", "0", "6")

@@ -15,7 +15,7 @@ from gear_nerfstudio.errors import InputError
 from gear_nerfstudio.spread import evenly_spread
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 
-pytestmark = pytest.mark.cost(20)
+pytestmark = pytest.mark.cost(5)
 
 
 @pytest.fixture(scope="module")

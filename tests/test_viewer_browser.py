@@ -35,7 +35,7 @@ from gear_nerfstudio.tracking.viewer import OUTPUT, Selection, highlight
 from gear_nerfstudio.viewer_speed import STILL_SECONDS, moving_rate, still_resolution
 from tests.conftest import BIN, ns
 
-pytestmark = pytest.mark.cost(180)
+pytestmark = pytest.mark.cost(290)
 
 STATIC_SPHERE, FAST_SPHERE = 1, 3
 SPEC = SyntheticSpec(dataset="n3d", width=32, height=24, frames=4, cameras=5, motion="fast")
