@@ -1,5 +1,6 @@
 """The field's plane lookups, full-frame renders and training iterations with the torch path and the Warp kernel
-side by side on one checkpoint, interleaved; times are this process's CPU seconds, best of ``--repeats``."""
+side by side on one checkpoint, interleaved; times are this process's CPU seconds (or wall seconds), best of
+``--repeats``."""
 
 from __future__ import annotations
 
@@ -16,18 +17,18 @@ from gear_nerfstudio.model.metrics import psnr
 KINDS = ("torch", "warp")
 
 
-def best(function, model: torch.nn.Module, repeats: int):
-    """{kind: (best CPU seconds, last result)} of ``function`` with each plane kernel in the model's fields (radiance
-    field and proposal networks), the kinds interleaved."""
+def best(function, model: torch.nn.Module, repeats: int, clock=time.process_time):
+    """{kind: (best seconds on ``clock``, last result)} of ``function`` with each plane kernel in the model's fields
+    (radiance field, gear function and proposal networks), the kinds interleaved."""
     results = {}
     for _ in range(repeats):
         for kind in KINDS:
             for module in model.modules():
                 if hasattr(module, "plane_kernel"):
                     module.plane_kernel = kind
-            start = time.process_time()
+            start = clock()
             result = function()
-            seconds = time.process_time() - start
+            seconds = clock() - start
             results[kind] = (min(seconds, results.get(kind, (seconds,))[0]), result)
     return results
 
@@ -44,6 +45,8 @@ class PlaneKernel:
     """Held-out frame to render."""
     train_iterations: int = 10
     """Training iterations per timing."""
+    wall_time: bool = False
+    """Time by the wall clock, for runs on several threads (``OMP_NUM_THREADS``), instead of the process's CPU time."""
 
     def main(self) -> None:
         trainer_config, pipeline, _, _ = eval_setup(self.config, test_mode="test")
@@ -63,11 +66,13 @@ class PlaneKernel:
         def forward_backward():
             field.gear_features(x, t, levels).sum().backward()
 
+        clock = time.perf_counter if self.wall_time else time.process_time
         with torch.no_grad():
-            forward = best(lambda: field.gear_features(x, t, levels), field, self.repeats)
-        backward = best(forward_backward, field, self.repeats)
-        renders = best(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], model, self.repeats)
-        print(f"radiance field lookups of one chunk: {len(x)} samples; frame {self.frame}: {rays.shape.numel()} pixels")
+            forward = best(lambda: field.gear_features(x, t, levels), field, self.repeats, clock)
+        backward = best(forward_backward, field, self.repeats, clock)
+        renders = best(lambda: model.get_outputs_for_camera_ray_bundle(rays)["rgb"], model, self.repeats, clock)
+        print(f"radiance field lookups of one chunk: {len(x)} samples; frame {self.frame}: {rays.shape.numel()} pixels; "
+              f"{torch.get_num_threads()} threads, {'wall' if self.wall_time else 'CPU'} seconds")
         print("| path | field lookups forward ms | forward + backward ms | frame s | pixels / s | PSNR (dB) |")
         print("| --- | --- | --- | --- | --- | --- |")
         for kind in KINDS:
@@ -92,7 +97,7 @@ class PlaneKernel:
                 step += 1
 
         train()  # warm-up
-        rates = best(train, trainer.pipeline.model, self.repeats)
+        rates = best(train, trainer.pipeline.model, self.repeats, clock)
         print("| path | training iterations / s |\n| --- | --- |")
         for kind in KINDS:
             print(f"| {kind} | {self.train_iterations / rates[kind][0]:.2f} |")

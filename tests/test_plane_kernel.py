@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from gear_nerfstudio.fields.gear_field import GearField, sample_points
-from gear_nerfstudio.fields.plane_kernel import plane_products
+from gear_nerfstudio.fields.gear_function import GearFunction
+from gear_nerfstudio.fields.plane_kernel import pack_planes
 from gear_nerfstudio.fields.proposal_field import ProposalDensityField
 from gear_nerfstudio.model.sampling import ProposalConfig
 from tests.test_gear_model import make_model, make_rays
@@ -101,27 +102,82 @@ def test_density_and_outputs_match():
         assert_close(outputs["warp"][1][name], value, name.value)
 
 
+def random_planes(module: torch.nn.Module) -> None:
+    """Every plane of ``module`` random in [-1, 1]."""
+    with torch.no_grad():
+        for name, plane in module.named_parameters():
+            if "planes" in name:
+                plane.uniform_(-1.0, 1.0)
+
+
+def values_and_grads(module, kind: str, function, x, t):
+    """``function(x, t)`` without gradients, then with them: its values, and the gradients of a fixed random
+    projection with respect to x, t and the module's parameters."""
+    for part in module.modules():
+        if hasattr(part, "plane_kernel"):
+            part.plane_kernel = kind
+    with torch.no_grad():
+        without = function(x, t)
+    xk, tk = x.clone().requires_grad_(), t.clone().requires_grad_()
+    values = function(xk, tk)
+    (values * torch.randn(values.shape, generator=torch.Generator().manual_seed(2))).sum().backward()
+    grads = [p.grad.clone() for p in module.parameters() if p.grad is not None]
+    module.zero_grad(set_to_none=True)
+    return [without, values.detach(), xk.grad, tk.grad, *grads]
+
+
 @pytest.mark.parametrize("time_resolution", [1, 5])
 def test_proposal_field_matches_torch(time_resolution):
-    """The proposal networks' planes (one gear, one resolution, no frame rows): same features and gradients."""
+    """The proposal networks' planes (one gear, one resolution, no frame rows): the same densities without gradients
+    (the weighted-sum kernel) and with them (the products kernel), and the same gradients."""
     torch.manual_seed(0)
     field = ProposalDensityField(AABB, resolution=6, time_resolution=time_resolution, feature_dim=4)
-    with torch.no_grad():
-        for plane in [*field.space_planes.planes, *field.time_planes.planes]:
-            plane.uniform_(-1.0, 1.0)
+    random_planes(field)
     x, t, _ = samples()
-    results = {}
-    for kind in ("torch", "warp"):
-        field.plane_kernel = kind
-        xk, tk = x.clone().requires_grad_(), t.clone().requires_grad_()
-        features = field.features(xk, tk)
-        (features * torch.randn(features.shape, generator=torch.Generator().manual_seed(2))).sum().backward()
-        planes = [p.grad.clone() for p in field.parameters() if p.grad is not None]
-        results[kind] = [features.detach(), xk.grad, tk.grad, *planes]
-        field.zero_grad(set_to_none=True)
-    assert len(results["warp"]) == len(results["torch"]) == 5  # features, x, t, the two planes (not the decoder)
-    for what, actual, expected in zip(["features", "d/dx", "d/dt", "d/dh", "d/dk"], results["warp"], results["torch"]):
+    results = {kind: values_and_grads(field, kind, field.density_fn, x * 0.9, t) for kind in ("torch", "warp")}
+    assert len(results["warp"]) == len(results["torch"]) == 8  # values twice, x, t, two planes, the decoder's two
+    names = ["densities without gradients", "densities", "d/dx", "d/dt", "d/dh", "d/dk", "d/dW", "d/db"]
+    for what, actual, expected in zip(names, results["warp"], results["torch"]):
         assert_close(actual, expected, what)
+
+
+@pytest.mark.parametrize("time_resolution", [1, 5])
+def test_gear_function_matches_torch(time_resolution):
+    """The gear function g (Eq 4) with the kernel: the same values without gradients (the weighted-sum kernel) and
+    with them, and the same gradients."""
+    torch.manual_seed(0)
+    function = GearFunction(feature_dim=4, resolution=5, time_resolution=time_resolution)
+    random_planes(function)
+    x, t, _ = samples()
+    results = {kind: values_and_grads(function, kind, function, x, t) for kind in ("torch", "warp")}
+    assert len(results["warp"]) == 6  # values twice, x, t, the two planes
+    for what, actual, expected in zip(["g without gradients", "g", "d/dx", "d/dt", "d/dh'", "d/dk'"],
+                                      results["warp"], results["torch"]):
+        assert_close(actual, expected, what)
+
+
+def test_packed_planes_follow_the_parameters():
+    """A render packs the planes once (the second call without gradients reuses them) and packs them again after an
+    in-place change of a plane, such as an optimizer step or a checkpoint load."""
+    field = random_field((4, 8))
+    field.eval()
+    field.plane_kernel = "warp"
+    x, t, levels = samples(50)
+    with torch.no_grad():
+        before = field.gear_features(x, t, levels)
+        packed = field.packed_planes[1]
+        field.gear_features(x, t, levels)
+        assert field.packed_planes[1] is packed
+        field.time_planes[1].planes[0].mul_(2.0)
+        after = field.gear_features(x, t, levels)
+    field.plane_kernel = "torch"
+    with torch.no_grad():
+        expected = field.gear_features(x, t, levels)
+    assert not torch.allclose(after, before)
+    assert_close(after, expected, "features after the change")
+    field.plane_kernel = "warp"
+    field.gear_features(x, t, levels)  # with gradients: packed anew, the kept copy dropped
+    assert field.packed_planes is None
 
 
 def test_model_renders_the_same():
@@ -147,11 +203,11 @@ def test_no_samples():
 
 
 def test_plane_products_needs_matching_planes():
-    planes = [torch.zeros(3, 2, 4, 4)]
     with pytest.raises(ValueError, match="one space-time plane per spatial plane"):
-        plane_products(torch.zeros(1, 3), torch.zeros(1), torch.ones(1), planes, [], torch.ones(1), torch.ones(1))
+        pack_planes([torch.zeros(3, 2, 4, 4)], [])
 
 
 def test_unknown_kernel_is_refused():
     with pytest.raises(ValueError, match="plane_kernel must be"):
         GearField(AABB, num_frames=2, num_gears=1, resolutions=(4,), plane_kernel="cuda")
+

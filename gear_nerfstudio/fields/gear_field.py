@@ -122,8 +122,8 @@ class GearField(Field):
         initial_density: density (per scene unit) the field starts from everywhere: the density MLP's output bias
             is set to log(initial_density) + 1; None keeps PyTorch's initialisation (raw outputs near 0, so sigma
             near exp(-1)).
-        plane_kernel: how ``gear_features`` looks up the planes: "torch" (``grid_sample``) or "warp" (the fused
-            kernel of ``plane_kernel.py``, same values).
+        plane_kernel: how ``gear_features`` and the gear function look up their planes: "torch" (``grid_sample``) or
+            "warp" (the fused kernels of ``plane_kernel.py``, same values).
     """
 
     def __init__(
@@ -192,7 +192,7 @@ class GearField(Field):
         # so the radiance field) start the same whatever its channels M' (`gear_feature_dim`).
         with torch.random.fork_rng(devices=[]):
             gear_rows = max(1, gear_time_resolution or num_frames)
-            self.gear_function = GearFunction(gear_feature_dim, gear_resolution, gear_rows)
+            self.gear_function = GearFunction(gear_feature_dim, gear_resolution, gear_rows, plane_kernel)
 
         self.direction_encoding = SHEncoding(levels=4, implementation="torch")
         self.density_net = MLP(
@@ -259,15 +259,20 @@ class GearField(Field):
             stacked = self.used_gears
         else:
             used, stacked = [True] * self.num_gears, torch.ones_like(self.gear_rows)
-        planes = self.stacked_time_planes([gear for gear in range(1, self.num_gears + 1) if used[gear - 1]])
+        gears = [gear for gear in range(1, self.num_gears + 1) if used[gear - 1]]
         # each stacked gear takes its rows and two frame rows; its first row follows the frame row above it
         block = (self.gear_rows + 2) * stacked
         first_rows = block.cumsum(0) - block + 1
         if self.plane_kernel == "warp":
-            from gear_nerfstudio.fields.plane_kernel import plane_products
+            from gear_nerfstudio.fields.plane_kernel import pack_planes, packed_once, plane_products
 
-            products = plane_products(x, t[:, 0], levels, self.space_planes.planes, planes, first_rows, self.gear_rows)
+            packed = packed_once(
+                self, [*self.space_planes.planes, *(p for gear in gears for p in self.time_planes[gear - 1].planes)],
+                lambda: pack_planes(self.space_planes.planes, self.stacked_time_planes(gears)),
+            )
+            products = plane_products(x, t[:, 0], levels, packed, first_rows, self.gear_rows)
             return products @ self.basis.weight.T
+        planes = self.stacked_time_planes(gears)
         row = first_rows[levels - 1] + t[:, 0] * (self.gear_rows[levels - 1] - 1)
         y = row * (2.0 / (planes[0].shape[-2] - 1)) - 1.0
         time = torch.stack([torch.stack([x[:, axis], y], dim=-1) for axis in TIME_PLANE_AXES])

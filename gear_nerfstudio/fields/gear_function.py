@@ -42,16 +42,26 @@ class GearFunction(nn.Module):
         feature_dim: channels M' of h' and k' (even).
         resolution: spatial resolution of the planes.
         time_resolution: temporal resolution of k'.
+        plane_kernel: plane lookups by "torch" (``grid_sample``) or "warp" (``plane_kernel.py``, same values).
     """
 
-    def __init__(self, feature_dim: int = 8, resolution: int = 64, time_resolution: int = 1) -> None:
+    def __init__(
+        self, feature_dim: int = 8, resolution: int = 64, time_resolution: int = 1, plane_kernel: str = "torch"
+    ) -> None:
         super().__init__()
         if feature_dim < 2 or feature_dim % 2:
             raise ValueError(f"gear_feature_dim must be even and >= 2, got {feature_dim}")
+        self.plane_kernel = plane_kernel
         self.space_planes = PlaneTriple(feature_dim, [(resolution, resolution)], init_gear_space_plane)
         self.time_planes = PlaneTriple(feature_dim, [(time_resolution, resolution)], init_gear_time_plane)
 
     def forward(self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N"]:
         """g at normalised positions x in [-1, 1]^3 and times t in [0, 1]."""
+        if self.plane_kernel == "warp":
+            from gear_nerfstudio.fields.plane_kernel import one_gear_sums, pack_planes, packed_once
+
+            space, time = self.space_planes.planes, self.time_planes.planes
+            packed = packed_once(self, [*space, *time], lambda: pack_planes(space, time))
+            return 1.0 + one_gear_sums(x, t[:, 0], packed, x.new_ones(3 * space[0].shape[1]))
         products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
         return 1.0 + products.sum(dim=(0, 1))

@@ -7,20 +7,28 @@ f = products @ B^T sums the planes and the resolutions in one matrix product. No
 the kernel reads the C channels of a corner as one vector (planes channels-last). The backward kernel accumulates the
 planes' gradients and, like ``grid_sample``, the positions' and times' (zero where a coordinate is clamped to the
 border). The space-time planes are those of ``GearField.stacked_time_planes``, gear p's row at time t being
-``first_rows[p - 1] + t (rows[p - 1] - 1)``; the proposal networks' are one gear from row 0.
+``first_rows[p - 1] + t (rows[p - 1] - 1)``; the proposal networks' and the gear function's are one gear from row
+0. Without gradients a third kernel reads such one-gear products out by a weight per column (the gear function's
+sum, Eq 4; a proposal network's linear decoder) and writes one number per sample.
 """
 
 import functools
 import itertools
-from typing import Any, Sequence
+import platform
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Sequence
 
 import torch
 import warp as wp
 from jaxtyping import Float, Int
-from torch import Tensor
+from torch import Tensor, nn
 
 wp.config.quiet = True
 wp.init()
+
+CPU_OPTIONS = {"cpu_compiler_flags": "-march=native"} if platform.machine() in ("x86_64", "AMD64") else {}
+"""Warp's CPU build targets baseline x86-64, where clang leaves the C-channel vector arithmetic scalar; the host's
+own instruction set (AVX2, AVX-512) lets it vectorise (docs/decisions.md)."""
 
 
 @wp.func
@@ -72,9 +80,27 @@ def slopes(plane: wp.array(dtype=Any), start: int, size: int, r0: int, r1: int, 
     return d_column, wp.cw_mul(g, (1.0 - cw) * (p10 - p00) + cw * (p11 - p01))
 
 
+@wp.func
+def resolution_products(space: wp.array(dtype=Any), time: wp.array(dtype=Any), layout: wp.array2d(dtype=int), r: int,
+                        x: float, y: float, z: float, t0: int, t1: int, tw: float):
+    """h_j ⊙ k_j (j = 1, 2, 3) of resolution r at plane coordinates (x, y, z), the space-time planes read between
+    rows t0 and t1 with weight tw of t1."""
+    size, space_start, time_start, height = layout[r, 0], layout[r, 1], layout[r, 2], layout[r, 3]
+    x0, x1, xw, xin = cell(unnormalise(x, size), size)
+    y0, y1, yw, yin = cell(unnormalise(y, size), size)
+    z0, z1, zw, zin = cell(unnormalise(z, size), size)
+    h1 = lookup(space, space_start, size, y0, y1, yw, x0, x1, xw)
+    h2 = lookup(space, space_start + size * size, size, z0, z1, zw, x0, x1, xw)
+    h3 = lookup(space, space_start + 2 * size * size, size, z0, z1, zw, y0, y1, yw)
+    k1 = lookup(time, time_start, size, t0, t1, tw, z0, z1, zw)
+    k2 = lookup(time, time_start + height * size, size, t0, t1, tw, y0, y1, yw)
+    k3 = lookup(time, time_start + 2 * height * size, size, t0, t1, tw, x0, x1, xw)
+    return wp.cw_mul(h1, k1), wp.cw_mul(h2, k2), wp.cw_mul(h3, k3)
+
+
 @functools.lru_cache(maxsize=None)
 def kernels(channels: int):
-    """Forward and backward kernels for planes of ``channels`` channels (one compiled module each).
+    """Forward, backward and weighted-sum kernels for planes of ``channels`` channels (one compiled module each).
 
     Per resolution r (``layout[r]``: size, first rows of its planes in the space and time buffers, rows of the
     space-time planes), plane j of a buffer begins j * rows * size rows after the resolution's first row; h_1, h_2,
@@ -82,7 +108,7 @@ def kernels(channels: int):
     (``planes.SPACE_PLANE_AXES``, ``planes.TIME_PLANE_AXES``)."""
     vec = wp.types.vector(length=channels, dtype=float)
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", module_options=CPU_OPTIONS)
     def forward(
         x: wp.array2d(dtype=float),
         t: wp.array(dtype=float),
@@ -96,25 +122,35 @@ def kernels(channels: int):
     ):
         n = wp.tid()
         gear = levels[n] - 1
-        height = layout[0, 3]
-        t0, t1, tw, tin = cell(first_rows[gear] + t[n] * (rows[gear] - 1.0), height)
+        t0, t1, tw, tin = cell(first_rows[gear] + t[n] * (rows[gear] - 1.0), layout[0, 3])
         num_resolutions = layout.shape[0]
         for r in range(num_resolutions):
-            size, space_start, time_start = layout[r, 0], layout[r, 1], layout[r, 2]
-            x0, x1, xw, xin = cell(unnormalise(x[n, 0], size), size)
-            y0, y1, yw, yin = cell(unnormalise(x[n, 1], size), size)
-            z0, z1, zw, zin = cell(unnormalise(x[n, 2], size), size)
-            h1 = lookup(space, space_start, size, y0, y1, yw, x0, x1, xw)
-            h2 = lookup(space, space_start + size * size, size, z0, z1, zw, x0, x1, xw)
-            h3 = lookup(space, space_start + 2 * size * size, size, z0, z1, zw, y0, y1, yw)
-            k1 = lookup(time, time_start, size, t0, t1, tw, z0, z1, zw)
-            k2 = lookup(time, time_start + height * size, size, t0, t1, tw, y0, y1, yw)
-            k3 = lookup(time, time_start + 2 * height * size, size, t0, t1, tw, x0, x1, xw)
-            out[n, r] = wp.cw_mul(h1, k1)
-            out[n, num_resolutions + r] = wp.cw_mul(h2, k2)
-            out[n, 2 * num_resolutions + r] = wp.cw_mul(h3, k3)
+            p1, p2, p3 = resolution_products(space, time, layout, r, x[n, 0], x[n, 1], x[n, 2], t0, t1, tw)
+            out[n, r] = p1
+            out[n, num_resolutions + r] = p2
+            out[n, 2 * num_resolutions + r] = p3
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", module_options=CPU_OPTIONS)
+    def sums(
+        x: wp.array2d(dtype=float),
+        t: wp.array(dtype=float),
+        space: wp.array(dtype=vec),
+        time: wp.array(dtype=vec),
+        layout: wp.array2d(dtype=int),
+        weights: wp.array(dtype=vec),
+        out: wp.array(dtype=float),
+    ):
+        n = wp.tid()
+        t0, t1, tw, tin = cell(t[n] * float(layout[0, 3] - 1), layout[0, 3])
+        num_resolutions = layout.shape[0]
+        total = float(0.0)
+        for r in range(num_resolutions):
+            p1, p2, p3 = resolution_products(space, time, layout, r, x[n, 0], x[n, 1], x[n, 2], t0, t1, tw)
+            total += wp.dot(p1, weights[r]) + wp.dot(p2, weights[num_resolutions + r])
+            total += wp.dot(p3, weights[2 * num_resolutions + r])
+        out[n] = total
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=CPU_OPTIONS)
     def backward(
         x: wp.array2d(dtype=float),
         t: wp.array(dtype=float),
@@ -178,7 +214,7 @@ def kernels(channels: int):
             grad_x[n, 2] = wp.dot(d_z, ones)
             grad_t[n] = wp.dot(d_t, ones) * tin * (rows[gear] - 1.0)
 
-    return forward, backward
+    return forward, backward, sums
 
 
 class PlaneProducts(torch.autograd.Function):
@@ -188,7 +224,7 @@ class PlaneProducts(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, t, levels, first_rows, rows, layout, space, time):
-        forward, _ = kernels(space.shape[-1])
+        forward = kernels(space.shape[-1])[0]
         out = x.new_empty(x.shape[0], 3 * layout.shape[0], space.shape[-1])
         launch(forward, x, t, levels, space, time, layout, first_rows, rows, out)
         ctx.save_for_backward(x, t, levels, first_rows, rows, layout, space, time)
@@ -197,7 +233,7 @@ class PlaneProducts(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out):
         x, t, levels, first_rows, rows, layout, space, time = ctx.saved_tensors
-        _, backward = kernels(space.shape[-1])
+        backward = kernels(space.shape[-1])[1]
         grad_out = grad_out.contiguous().view(x.shape[0], 3 * layout.shape[0], space.shape[-1])
         grad_space, grad_time = torch.zeros_like(space), torch.zeros_like(time)
         grad_x, grad_t = torch.zeros_like(x), torch.zeros_like(t)
@@ -218,20 +254,22 @@ def launch(kernel: wp.Kernel, x: Tensor, *args) -> None:
     wp.launch(kernel, dim=x.shape[0], inputs=inputs, device=wp.device_from_torch(x.device), stream=stream)
 
 
-def plane_products(
-    x: Float[Tensor, "N 3"],
-    t: Float[Tensor, "N"],
-    levels: Int[Tensor, "N"],
-    space_planes: Sequence[Float[Tensor, "3 C R R"]],
-    time_planes: Sequence[Float[Tensor, "3 C H R"]],
-    first_rows: Float[Tensor, "G"],
-    rows: Float[Tensor, "G"],
-) -> Float[Tensor, "N F"]:
-    """Eq 3's products h_j ⊙ k_j^p of every plane j and resolution, F = 3 x resolutions x C columns (plane-major),
-    at normalised positions x, times t in [0, 1] and gear levels p (1-based); ``time_planes`` stacked by gear,
-    gear p's first row and its number of rows in ``first_rows`` and ``rows``."""
+@dataclass(frozen=True)
+class PackedPlanes:
+    """Planes of every resolution as the kernels read them: two channels-last buffers, ``space`` (rows of C) and
+    ``time``, and ``layout``, per resolution its size, its first row in each buffer and the space-time planes' rows."""
+
+    layout: Int[Tensor, "R 4"]
+    space: Float[Tensor, "S C"]
+    time: Float[Tensor, "T C"]
+
+
+def pack_planes(
+    space_planes: Sequence[Float[Tensor, "3 C R R"]], time_planes: Sequence[Float[Tensor, "3 C H R"]]
+) -> PackedPlanes:
+    """The spatial and space-time planes of each resolution (one of each per resolution) packed for the kernels."""
     if len(space_planes) != len(time_planes):
-        raise ValueError(f"plane_products needs one space-time plane per spatial plane, got {len(time_planes)} "
+        raise ValueError(f"the plane kernel needs one space-time plane per spatial plane, got {len(time_planes)} "
                          f"for {len(space_planes)}")
     channels, height = space_planes[0].shape[1], time_planes[0].shape[2]
     sizes = [p.shape[-1] for p in space_planes]
@@ -240,13 +278,57 @@ def plane_products(
     layout = torch.tensor(
         [[size, s, t, height] for size, s, t in zip(sizes, itertools.accumulate(space_starts),
                                                      itertools.accumulate(time_starts))],
-        dtype=torch.int32, device=x.device,
+        dtype=torch.int32, device=space_planes[0].device,
     )
     space, time = (
         torch.cat([p.float().permute(0, 2, 3, 1).reshape(-1, channels) for p in planes])
         for planes in (space_planes, time_planes)
     )
+    return PackedPlanes(layout, space, time)
+
+
+def packed_once(owner: nn.Module, parameters: Iterable[Tensor], pack: Callable[[], PackedPlanes]) -> PackedPlanes:
+    """``pack()``, kept on ``owner`` while no gradient is taken and ``parameters`` are unchanged, so that the chunks
+    of a render pack the planes once; with gradients it is packed anew each call and the kept copy is dropped."""
+    if torch.is_grad_enabled():
+        owner.packed_planes = None
+        return pack()
+    key = tuple((p.data_ptr(), p._version) for p in parameters)
+    kept = getattr(owner, "packed_planes", None)
+    if kept is None or kept[0] != key:
+        kept = owner.packed_planes = (key, pack())
+    return kept[1]
+
+
+def plane_products(
+    x: Float[Tensor, "N 3"],
+    t: Float[Tensor, "N"],
+    levels: Int[Tensor, "N"],
+    planes: PackedPlanes,
+    first_rows: Float[Tensor, "G"],
+    rows: Float[Tensor, "G"],
+) -> Float[Tensor, "N F"]:
+    """Eq 3's products h_j ⊙ k_j^p of every plane j and resolution, F = 3 x resolutions x C columns (plane-major),
+    at normalised positions x, times t in [0, 1] and gear levels p (1-based); the space-time planes stacked by gear,
+    gear p's first row and its number of rows in ``first_rows`` and ``rows``."""
     return PlaneProducts.apply(
         x.float().contiguous(), t.float().contiguous(), levels.to(torch.int32).contiguous(),
-        first_rows.float().contiguous(), rows.float().contiguous(), layout, space, time,
+        first_rows.float().contiguous(), rows.float().contiguous(), planes.layout, planes.space, planes.time,
     )
+
+
+def one_gear_sums(
+    x: Float[Tensor, "N 3"], t: Float[Tensor, "N"], planes: PackedPlanes, weights: Float[Tensor, "F"]
+) -> Float[Tensor, "N"]:
+    """The products of planes without gears (the gear function's and the proposal networks'; ``plane_products``
+    with every sample reading the space-time planes from their first row) read out by ``weights``: the sum over
+    the F columns of weights ⊙ products. Without gradients one kernel writes the sums only."""
+    if torch.is_grad_enabled():
+        rows = planes.layout[:1, 3].float()
+        levels = torch.ones(len(x), dtype=torch.int32, device=x.device)
+        return plane_products(x, t, levels, planes, torch.zeros_like(rows), rows) @ weights
+    out = x.new_empty(len(x))
+    weights = weights.float().contiguous().view(-1, planes.space.shape[-1])
+    launch(kernels(planes.space.shape[-1])[2], x.float().contiguous(), t.float().contiguous(), planes.space,
+           planes.time, planes.layout, weights, out)
+    return out

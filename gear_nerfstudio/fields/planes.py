@@ -109,7 +109,8 @@ class PlaneTriple(nn.Module):
     def forward(self, coords: Float[Tensor, "3 N 2"]) -> Float[Tensor, "3 out N"]:
         """Features of the three planes, resolutions concatenated (out = C * num_resolutions), channels first as
         grid_sample gives them (``flat_features`` feeds them to a linear map without a transposed copy)."""
-        return torch.cat(self.lookups(coords), dim=1)
+        lookups = self.lookups(coords)
+        return lookups[0] if len(lookups) == 1 else torch.cat(lookups, dim=1)
 
     def lookups(self, coords: Float[Tensor, "3 N 2"]) -> List[Float[Tensor, "3 C N"]]:
         """Features of the three planes, one tensor per resolution."""

@@ -67,20 +67,16 @@ class ProposalDensityField(nn.Module):
         if self.seen_space is not None and not self.training:
             inside = inside & self.seen_space(x)
         t = broadcast_times(times, shape, positions).reshape(-1, 1)
-        raw = self.decoder(self.features(x, t))
+        if self.plane_kernel == "warp":
+            from gear_nerfstudio.fields.plane_kernel import one_gear_sums, pack_planes, packed_once
+
+            space, time = self.space_planes.planes, self.time_planes.planes
+            packed = packed_once(self, [*space, *time], lambda: pack_planes(space, time))
+            raw = (one_gear_sums(x, t[:, 0], packed, self.decoder.weight[0]) + self.decoder.bias)[:, None]
+        else:
+            raw = self.decoder(flat_features(self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))))
         density = torch.where(inside[:, None], density_activation(raw), torch.zeros_like(raw))
         return density.reshape(*shape, 1)
-
-    def features(self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N 3C"]:
-        """h_j ⊙ k_j of the three planes at normalised positions and times, side by side (plane-major)."""
-        if self.plane_kernel == "warp":
-            from gear_nerfstudio.fields.plane_kernel import plane_products
-
-            rows = torch.tensor([float(self.time_planes.planes[0].shape[-2])], device=x.device)
-            levels = torch.ones(len(x), dtype=torch.int32, device=x.device)
-            space, time = self.space_planes.planes, self.time_planes.planes
-            return plane_products(x, t[:, 0], levels, space, time, torch.zeros_like(rows), rows)
-        return flat_features(self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t)))
 
     def regularisers(self) -> Dict[str, Tensor]:
         """K-Planes regularisers on the proposal planes."""
