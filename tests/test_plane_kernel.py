@@ -210,4 +210,3 @@ def test_plane_products_needs_matching_planes():
 def test_unknown_kernel_is_refused():
     with pytest.raises(ValueError, match="plane_kernel must be"):
         GearField(AABB, num_frames=2, num_gears=1, resolutions=(4,), plane_kernel="cuda")
-
