@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 import torch
 from jaxtyping import Float, Int
 from torch import Tensor, nn
@@ -46,7 +48,11 @@ class GearFunction(nn.Module):
     """
 
     def __init__(
-        self, feature_dim: int = 8, resolution: int = 64, time_resolution: int = 1, plane_kernel: str = "torch"
+        self,
+        feature_dim: int = 8,
+        resolution: int = 64,
+        time_resolution: int = 1,
+        plane_kernel: Literal["torch", "warp"] = "torch",
     ) -> None:
         super().__init__()
         if feature_dim < 2 or feature_dim % 2:
@@ -58,10 +64,9 @@ class GearFunction(nn.Module):
     def forward(self, x: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N"]:
         """g at normalised positions x in [-1, 1]^3 and times t in [0, 1]."""
         if self.plane_kernel == "warp":
-            from gear_nerfstudio.fields.plane_kernel import one_gear_sums, pack_planes, packed_once
+            from gear_nerfstudio.fields.plane_kernel import one_gear_sums
 
             space, time = self.space_planes.planes, self.time_planes.planes
-            packed = packed_once(self, [*space, *time], lambda: pack_planes(space, time))
-            return 1.0 + one_gear_sums(x, t[:, 0], packed, x.new_ones(3 * space[0].shape[1]))
+            return 1.0 + one_gear_sums(self, x, t[:, 0], space, time, x.new_ones(3 * space[0].shape[1]))
         products = self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))
         return 1.0 + products.sum(dim=(0, 1))

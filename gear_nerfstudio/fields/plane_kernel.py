@@ -318,11 +318,18 @@ def plane_products(
 
 
 def one_gear_sums(
-    x: Float[Tensor, "N 3"], t: Float[Tensor, "N"], planes: PackedPlanes, weights: Float[Tensor, "F"]
+    owner: nn.Module,
+    x: Float[Tensor, "N 3"],
+    t: Float[Tensor, "N"],
+    space_planes: Sequence[Float[Tensor, "3 C R R"]],
+    time_planes: Sequence[Float[Tensor, "3 C H R"]],
+    weights: Float[Tensor, "F"],
 ) -> Float[Tensor, "N"]:
-    """The products of planes without gears (the gear function's and the proposal networks'; ``plane_products``
-    with every sample reading the space-time planes from their first row) read out by ``weights``: the sum over
-    the F columns of weights ⊙ products. Without gradients one kernel writes the sums only."""
+    """The products of ``owner``'s planes without gears (the gear function's and the proposal networks';
+    ``plane_products`` with every sample reading the space-time planes from their first row) read out by
+    ``weights``: the sum over the F columns of weights ⊙ products. Without gradients one kernel writes the sums only,
+    the planes packed once per render (``packed_once``)."""
+    planes = packed_once(owner, [*space_planes, *time_planes], lambda: pack_planes(space_planes, time_planes))
     if torch.is_grad_enabled():
         rows = planes.layout[:1, 3].float()
         levels = torch.ones(len(x), dtype=torch.int32, device=x.device)

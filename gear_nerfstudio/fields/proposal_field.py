@@ -68,11 +68,10 @@ class ProposalDensityField(nn.Module):
             inside = inside & self.seen_space(x)
         t = broadcast_times(times, shape, positions).reshape(-1, 1)
         if self.plane_kernel == "warp":
-            from gear_nerfstudio.fields.plane_kernel import one_gear_sums, pack_planes, packed_once
+            from gear_nerfstudio.fields.plane_kernel import one_gear_sums
 
             space, time = self.space_planes.planes, self.time_planes.planes
-            packed = packed_once(self, [*space, *time], lambda: pack_planes(space, time))
-            raw = (one_gear_sums(x, t[:, 0], packed, self.decoder.weight[0]) + self.decoder.bias)[:, None]
+            raw = (one_gear_sums(self, x, t[:, 0], space, time, self.decoder.weight[0]) + self.decoder.bias)[:, None]
         else:
             raw = self.decoder(flat_features(self.space_planes(space_coords(x)) * self.time_planes(time_coords(x, t))))
         density = torch.where(inside[:, None], density_activation(raw), torch.zeros_like(raw))
