@@ -89,6 +89,10 @@ def _observations(
         reader.camera_model = "PINHOLE"
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.sift.peak_threshold = 0.002  # as the calibration (process.calibrate): small, low-contrast frames
+        # Images imported first, in order: extraction threads would number them as they finish, and the points
+        # triangulated from the same images would differ from run to run (and so would training from a seed).
+        pycolmap.Database.open(database).close()  # import_images wants the file to exist
+        pycolmap.import_images(database, folder, camera_mode=pycolmap.CameraMode.PER_IMAGE, options=reader)
         pycolmap.extract_features(
             database, folder, camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
             extraction_options=extraction, device=pycolmap.Device.cpu,
