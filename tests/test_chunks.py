@@ -1,9 +1,10 @@
 """ns-gear-chunks: a 24-frame video in 3 chunks, trained, rendered and evaluated as one video; resumed chunk by
-chunk (the Ray executor: test_chunks_ray.py)."""
+chunk, with the local executor and with Ray."""
 
 from __future__ import annotations
 
 import json
+import shutil
 
 import av
 import numpy as np
@@ -15,7 +16,7 @@ from gear_nerfstudio.chunks.plan import ChunkError, owners, plan_chunks, positio
 from gear_nerfstudio.tools.synthetic.writers import SyntheticSpec, write_synthetic_scene
 from tests.conftest import command, ns
 
-pytestmark = pytest.mark.cost(310)
+pytestmark = pytest.mark.cost(380)
 
 FRAMES = 24
 ITERATIONS = 100
@@ -150,6 +151,34 @@ def test_train_again_resumes_only_the_stopped_chunk(chunked):
         f"error: {out / 'chunks.json'}: this folder holds chunks of another command (chunk_frames differ); "
         "use another --output-dir"
     )
+
+
+def test_the_ray_executor_trains_a_chunk_to_the_local_executors_checkpoint(chunked, tmp_path):
+    """The trained chunks copied without chunk 1, then `ns-gear-chunks train --executor ray` on the copy: Ray's
+    task leaves the trained chunks as they are and trains chunk 1 again, to the very parameters the local
+    executor gave it."""
+    pytest.importorskip("ray")
+    root, scene, out = chunked
+    copied = tmp_path / "out"
+    shutil.copytree(out, copied)
+    shutil.rmtree(copied / "chunk_001")
+    models = [copied / f"chunk_{k:03d}" / "gear-nerf-small" / "run" / "nerfstudio_models" for k in range(3)]
+    finished = {path: path.stat().st_mtime_ns for k in (0, 2) for path in models[k].glob("*.ckpt")}
+    ns("ns-gear-chunks", "train", "--output-dir", str(copied), "--chunk-frames", "10", "--overlap", "3", "--executor",
+       "ray", "--", *train_args(scene, root / "cache", ITERATIONS), cwd=root)
+    assert {path: path.stat().st_mtime_ns for k in (0, 2) for path in models[k].glob("*.ckpt")} == finished
+    last = f"step-{ITERATIONS - 1:09d}.ckpt"
+    local, ray = (
+        torch.load(folder / "chunk_001" / "gear-nerf-small" / "run" / "nerfstudio_models" / last, map_location="cpu",
+                   weights_only=False)["pipeline"]
+        for folder in (out, copied)
+    )  # fmt: skip
+    assert set(local) == set(ray)
+    for key in local:
+        assert torch.equal(local[key], ray[key]), key
+    # the chunks model different frames: their radiance fields differ
+    first = torch.load(models[0] / last, map_location="cpu", weights_only=False)["pipeline"]
+    assert not torch.equal(first["_model.field.basis.weight"], local["_model.field.basis.weight"])
 
 
 def test_a_window_that_is_not_a_video_is_refused_in_one_line(tmp_path):

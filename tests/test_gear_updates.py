@@ -156,9 +156,11 @@ def test_moving_patches_average_the_change_and_spread_back_to_pixels():
 # Sec 4.3 as a whole: nerfstudio's Trainer, in this process, on a small synthetic scene with ground truth.
 
 LOOP_SPEC = SyntheticSpec(dataset="n3d", width=64, height=48, frames=6, cameras=5, motion="mixed")
-LOOP_ITERATIONS = 400
+LOOP_ITERATIONS = 280
 EPOCH = 20
-"""Iterations per epoch of the loop test: updates every 60 iterations while 200 remain (60, 120, 180)."""
+AFTER = 4
+"""Iterations per epoch of the loop test and epochs after the updates (L'): updates every 60 iterations while 80
+remain (60, 120, 180), then 80 iterations after the last review (the gear function no longer changes)."""
 
 
 def loop_config(root: Path, name: str, iterations: int, load_dir: Optional[Path] = None, **updates) -> TrainerConfig:
@@ -170,7 +172,9 @@ def loop_config(root: Path, name: str, iterations: int, load_dir: Optional[Path]
     config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 0
     config.pipeline.datamanager.dataparser = Neural3DVideoDataParserConfig(data=root / "scene", cache_dir=root / "cache")
     config.pipeline.datamanager.sam_cache_dir = root / "sam"
-    config.pipeline.gear_updates = dataclasses.replace(config.pipeline.gear_updates, iterations_per_epoch=EPOCH, **updates)
+    config.pipeline.gear_updates = dataclasses.replace(
+        config.pipeline.gear_updates, iterations_per_epoch=EPOCH, epochs_after_updates=AFTER, **updates
+    )
     return config
 
 
@@ -190,7 +194,7 @@ def loop_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("gear-loop")
     write_synthetic_scene(root / "scene", LOOP_SPEC)
     # The guard reviews every update but undoes none (its undo has its own test below): whether a review on this
-    # 400-iteration toy run finds its 4 views 0.1 dB worse depends on the machine's rounding. Here all 20 runs tried
+    # toy run finds its 4 views 0.1 dB worse depends on the machine's rounding. Here all 20 runs tried
     # (seeds, CPU instruction sets) gained 1.2-3.3 dB at each review; one CI run undid update 2.
     return root, *train(loop_config(root, "first", LOOP_ITERATIONS, guard_tolerance=math.inf))
 
@@ -215,7 +219,7 @@ def ground_truth_gear_levels(root: Path, trainer: Trainer) -> Tuple[np.ndarray, 
 
 
 def test_updates_move_moving_objects_up_and_keep_the_static_scene_in_gear_1(loop_run):
-    """Three updates of 4 views each on a 400-iteration run. Over seeds 42-49 on one machine, with the earlier
+    """Three updates of 4 views each on a 280-iteration run. Over seeds 42-49 on one machine, with the earlier
     defaults (8 gear channels, no S_static, the stand-in's masks), the true surfaces of
     the moving spheres were at gear >= 2 for 73-97 % of cam00's pixels and the static ones at gear 1 for 91-95 %;
     on CI's machine seed 42 gave 61 % (91 % here), so the bound is a majority.
@@ -335,7 +339,7 @@ def test_the_updates_render_their_views_as_training_sees_the_scene(loop_run):
 def test_a_resumed_run_goes_on_with_the_updates_where_they_were(loop_run):
     root, first, _ = loop_run
     checkpoints = root / "runs" / "loop" / "gear-nerf-small" / "first" / "nerfstudio_models"
-    # From step 100 (after the update at 60) to step 399: the updates at 120 and 180 are the 2nd and 3rd.
+    # From step 100 (after the update at 60) to step 279: the updates at 120 and 180 are the 2nd and 3rd.
     # What is checked is the schedule, not the fit: 256 rays, 10 Eq 11 steps, and no guard (with so few rays it may
     # undo update 2, which rightly ends the updates; the guard has its own test below).
     middle = copy.deepcopy(
@@ -354,7 +358,7 @@ def test_a_resumed_run_goes_on_with_the_updates_where_they_were(loop_run):
 def test_a_run_that_would_get_no_update_stops_before_training(tmp_path):
     root = tmp_path
     write_synthetic_scene(root / "scene", SyntheticSpec(dataset="n3d", width=24, height=18, frames=3, cameras=4))
-    config = loop_config(root, "short", 150)  # updates every 60 iterations while 200 remain: none
+    config = loop_config(root, "short", 130)  # updates every 60 iterations while 80 remain: none
     with pytest.raises(NoGearUpdates, match="--max-num-iterations"):
         train(config)
 
