@@ -160,7 +160,8 @@ LOOP_ITERATIONS = 280
 EPOCH = 20
 AFTER = 4
 """Iterations per epoch of the loop test and epochs after the updates (L'): updates every 60 iterations while 80
-remain (60, 120, 180), then 80 iterations after the last review (the gear function no longer changes)."""
+remain (60, 120, 180); the run ends 40 iterations after the last update's review at 240 (the gear function no longer
+changes after the last update)."""
 
 
 def loop_config(root: Path, name: str, iterations: int, load_dir: Optional[Path] = None, **updates) -> TrainerConfig:
